@@ -1,0 +1,1 @@
+"""The intersection world of sb3_gccp (installed as ``gccp_envs``)."""

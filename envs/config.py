@@ -1,0 +1,210 @@
+"""One typed source of truth for every constant of the intersection world.
+
+Paper references are to Huang, "Goal-conditioned Hierarchical Reinforcement Learning for
+Sample-efficient and Safe Autonomous Driving at Intersections" (section numbers of the LaTeX source).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+TASKS = ("left", "straight", "right")
+"""The paper's three scenarios: turning left, going straight, turning right."""
+
+DT = 0.1
+"""Seconds per policy step and per simulation step: the paper's actions are reached in 0.1 s."""
+
+
+@dataclass(frozen=True)
+class IntersectionConfig:
+    """Configuration of the intersection world shared by the planner, decider and flat envs.
+
+    Every field has the paper's value where the paper sets one; the others are our choices, documented
+    in the README ("Design choices").
+    """
+
+    # --- scenario --------------------------------------------------------------------------------
+    task: str = "mixed"
+    """'left' | 'straight' | 'right', or 'mixed' to draw one per episode (paper IV: trained together)."""
+    lanes_per_approach: int = 2
+    """Lanes per direction on every arm; 1 is highway-env's single-lane layout (paper Fig. 8 C: 2)."""
+    lane_width: float = 4.0
+    """Lane width [m] (highway-env's default)."""
+    corner_radius: float = 5.0
+    """Radius [m] of the kerb at the four corners of the junction box."""
+    approach_length: float = 70.0
+    """Length [m] of every arm, from the junction box to where traffic appears or leaves."""
+    duration: float = 30.0
+    """Episode time limit [s]; reaching it truncates the episode."""
+    ego_start_distance: tuple[float, float] = (25.0, 40.0)
+    """Range [m] of the ego's start distance before its stop line, drawn uniformly."""
+    ego_start_speed: tuple[float, float] = (4.0, 8.0)
+    """Range [m/s] of the ego's start speed, drawn uniformly."""
+    ego_lane: str = "random"
+    """'random': ego starts on any lane of its arm (a lane change may be needed); 'task': a lane of the task."""
+    exit_distance: float = 20.0
+    """Distance [m] past the junction box on the task's exit arm that counts as task success."""
+
+    # --- traffic ---------------------------------------------------------------------------------
+    spawn_probability: float = 0.12
+    """Chance per 0.1 s step of one spawn attempt on a random inbound lane (highway-env semantics)."""
+    warmup_time: float = 12.0
+    """Seconds of traffic simulated before the ego appears, so the junction is populated."""
+    npc_speed_range: tuple[float, float] = (7.0, 10.0)
+    """Desired speeds [m/s] of other vehicles, drawn uniformly per vehicle."""
+    npc_time_headway: tuple[float, float] = (1.0, 1.6)
+    """IDM time headways [s] of other vehicles, drawn uniformly per vehicle."""
+    crashed_vehicle_lifetime: float = 3.0
+    """Seconds a crashed other vehicle stays on the road before it is removed."""
+    max_vehicles: int = 48
+    """Capacity of the traffic table; spawns are skipped when it is full."""
+
+    # --- ego motion (paper III-D-2: N_a = 6 pose changes reached in 0.1 s) -------------------------
+    cruise_speed: float = 8.0
+    """Speed [m/s] that 'keep direction' accelerates back to."""
+    acceleration: float = 2.0
+    """Acceleration [m/s^2] of 'keep direction' below cruise speed."""
+    deceleration: float = 4.0
+    """Deceleration [m/s^2] of 'slow down'; the ego stops fully from cruise speed in 2 s."""
+    slow_turn_curvature: float = 1.0 / 12.0
+    """Curvature [1/m] of 'slowly turn left/right' (a left turn needs 1/15)."""
+    quick_turn_curvature: float = 1.0 / 6.0
+    """Curvature [1/m] of 'quickly turn left/right' (a right turn needs 1/7)."""
+
+    # --- state (paper III-B-1) -------------------------------------------------------------------
+    num_neighbours: int = 5
+    """N_s: surrounding vehicles in the state, nearest first (paper: 5)."""
+    history_length: int = 10
+    """T_h: history vectors per vehicle, one per 0.1 s step (paper: not given; 1 s)."""
+    num_routes: int = 3
+    """N_r: routes per vehicle (paper: 3)."""
+    route_points: int = 50
+    """N_p: waypoint vectors per route (paper: 50)."""
+    route_spacing: float = 1.0
+    """Spacing [m] of route waypoints (paper: 1 m)."""
+    bev_size: int = 64
+    """Pixels per side of the drivable-area bird's-eye view (paper: 64)."""
+    bev_extent: float = 50.0
+    """Metres covered by the bird's-eye view, centred on the ego (paper: 50 m)."""
+    observation_radius: float = 50.0
+    """Vehicles farther than this [m] from the ego are not neighbours."""
+
+    # --- subgoals and hierarchy (paper III-B-2, III-D) -------------------------------------------
+    num_subgoals: int = 12
+    """N: subgoal candidates (paper: 12)."""
+    subgoal_spacing: float = 5.0
+    """Spacing [m] of subgoal candidates along a route (paper: 5 m)."""
+    subgoal_range: float = 20.0
+    """Length [m] of the window of candidates along a route (paper: 20 m)."""
+    subgoal_reach_radius: float = 2.0
+    """A subgoal counts as reached within this distance [m] ..."""
+    subgoal_reach_heading: float = 0.5
+    """... and this heading difference [rad]."""
+    decision_period: int = 10
+    """T_m: motion-planner steps per decision (paper: 10)."""
+    prediction_horizon: int = 10
+    """T_f: future poses predicted per vehicle, at 0.1 s (paper: 10)."""
+
+    # --- motion-planner reward (paper Eq. r^m) ---------------------------------------------------
+    r_time: float = -0.05
+    """Time penalty per step (paper: -0.05)."""
+    r_arr: float = 1.0
+    """Reward for reaching the subgoal (paper: 1.0)."""
+    r_col: float = -1.0
+    """Collision penalty (paper: -1)."""
+    r_off: float = -1.0
+    """Off-road penalty (paper: -1)."""
+    eps_d: float = 0.05
+    """epsilon_d: weight of the decrease of the distance to the subgoal (paper: 0.05)."""
+    eps_h: float = 0.5
+    """epsilon_h: weight of the decrease of the heading difference to the subgoal (paper: 0.5)."""
+
+    # --- decision-maker reward (paper Eq. r^d) ---------------------------------------------------
+    r_goal: float = 3.0
+    """Reward when the task goal is reached (paper: 3)."""
+    r_subgoal: float = 0.5
+    """Reward when the subgoal is reached within T_m steps (paper: 0.5)."""
+    r_near: float = -0.5
+    """Constant of the subgoal-distance term (paper: -0.5)."""
+    eps_s: float = 0.05
+    """epsilon_s: weight of the distance to the chosen subgoal (paper: 0.05)."""
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any] | None = None, **overrides: Any) -> IntersectionConfig:
+        """Build a config from a mapping, rejecting unknown keys with a message naming them.
+
+        :param values: field values (for example a YAML map)
+        :param overrides: more field values, taking precedence
+        :return: the validated config
+        """
+        merged = {**(values or {}), **overrides}
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(merged) - known)
+        if unknown:
+            hints = [
+                f"{key!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(key, known, 1)) else repr(key)
+                for key in unknown
+            ]
+            raise ValueError(f"unknown intersection config key(s): {', '.join(hints)}")
+        tuples = {k: tuple(v) for k, v in merged.items() if isinstance(v, list)}
+        return cls(**{**merged, **tuples})
+
+    def replace(self, **changes: Any) -> IntersectionConfig:
+        """Return a copy with some fields changed (validated like :meth:`from_dict`).
+
+        :param changes: new field values
+        :return: the new config
+        """
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def road_half_width(self) -> float:
+        """Half width [m] of a road: all lanes of one direction."""
+        return self.lanes_per_approach * self.lane_width
+
+    @property
+    def junction_half_size(self) -> float:
+        """Distance [m] from the centre to every stop line (the junction box's half size)."""
+        return self.road_half_width + self.corner_radius
+
+
+def _validate(config: IntersectionConfig) -> None:
+    """Raise ``ValueError`` naming the first bad field."""
+    if config.task not in (*TASKS, "mixed"):
+        raise ValueError(f"unknown task {config.task!r}: expected one of {', '.join((*TASKS, 'mixed'))}")
+    if config.ego_lane not in ("random", "task"):
+        raise ValueError(f"ego_lane must be 'random' or 'task', got {config.ego_lane!r}")
+    positive_ints = ("lanes_per_approach", "num_neighbours", "history_length", "num_routes",
+                     "route_points", "bev_size", "num_subgoals", "decision_period",
+                     "prediction_horizon", "max_vehicles")
+    for name in positive_ints:
+        value = getattr(config, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    positive_floats = ("lane_width", "corner_radius", "approach_length", "duration", "exit_distance",
+                       "cruise_speed", "acceleration", "deceleration", "slow_turn_curvature",
+                       "quick_turn_curvature", "route_spacing", "bev_extent", "observation_radius",
+                       "subgoal_spacing", "subgoal_range", "subgoal_reach_radius", "subgoal_reach_heading")
+    for name in positive_floats:
+        value = getattr(config, name)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+    if not 0.0 <= config.spawn_probability <= 1.0:
+        raise ValueError(f"spawn_probability must be in [0, 1], got {config.spawn_probability!r}")
+    for name in ("ego_start_distance", "ego_start_speed", "npc_speed_range", "npc_time_headway"):
+        low_high = getattr(config, name)
+        if len(low_high) != 2 or not 0 <= low_high[0] <= low_high[1]:
+            raise ValueError(f"{name} must be a (low, high) pair with 0 <= low <= high, got {low_high!r}")
+    if config.ego_start_distance[1] > config.approach_length - 10.0:
+        raise ValueError("ego_start_distance must leave at least 10 m of approach behind the ego")
+    if config.exit_distance > config.approach_length - 10.0:
+        raise ValueError("exit_distance must be at least 10 m shorter than approach_length")
+    if config.quick_turn_curvature < config.slow_turn_curvature:
+        raise ValueError("quick_turn_curvature must be at least slow_turn_curvature")
