@@ -206,5 +206,7 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError("ego_start_distance must leave at least 10 m of approach behind the ego")
     if config.exit_distance > config.approach_length - 10.0:
         raise ValueError("exit_distance must be at least 10 m shorter than approach_length")
+    if config.prediction_horizon > config.decision_period:
+        raise ValueError("prediction_horizon (T_f) must not exceed decision_period (T_m)")
     if config.quick_turn_curvature < config.slow_turn_curvature:
         raise ValueError("quick_turn_curvature must be at least slow_turn_curvature")

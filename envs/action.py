@@ -1,0 +1,83 @@
+"""Ego motion: the paper's N_a = 6 discrete actions, each a pose change reached in 0.1 s (III-D-2).
+
+An action fixes a speed change and a path curvature; the pose change (dx, dy, dheading) in the ego
+frame is the exact arc driven in one step at the mean speed. Turning needs speed: a stopped ego cannot
+turn on the spot, it first accelerates with 'keep direction'.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.geometry import FloatArray, wrap_angle
+
+
+class EgoAction(IntEnum):
+    """The six motion-planner actions, in the paper's order."""
+
+    SLOW_DOWN = 0
+    KEEP_DIRECTION = 1
+    SLOWLY_TURN_LEFT = 2
+    SLOWLY_TURN_RIGHT = 3
+    QUICKLY_TURN_LEFT = 4
+    QUICKLY_TURN_RIGHT = 5
+
+
+@dataclass
+class EgoState:
+    """World pose and speed of the ego."""
+
+    x: float
+    y: float
+    heading: float
+    speed: float
+
+    def as_array(self) -> FloatArray:
+        """(x, y, heading, speed)."""
+        return np.array([self.x, self.y, self.heading, self.speed])
+
+
+class EgoMotion:
+    """Maps each action to a speed change and a curvature, and applies it for one step."""
+
+    def __init__(self, config: IntersectionConfig) -> None:
+        self.config = config
+        slow, quick = config.slow_turn_curvature, config.quick_turn_curvature
+        # A left turn decreases the heading (highway-env's frame, y down on screen).
+        self.curvature = np.array([0.0, 0.0, -slow, slow, -quick, quick])
+
+    def next_speed(self, speed: float, action: int) -> float:
+        """Speed after one step: brake, accelerate back to cruise speed, or hold while turning."""
+        cfg = self.config
+        if action == EgoAction.SLOW_DOWN:
+            return max(speed - cfg.deceleration * DT, 0.0)
+        if action == EgoAction.KEEP_DIRECTION:
+            return max(min(speed + cfg.acceleration * DT, cfg.cruise_speed), speed - cfg.deceleration * DT)
+        return speed
+
+    def pose_change(self, speed: float, action: int) -> tuple[FloatArray, float]:
+        """Pose change (dx, dy, dheading) in the ego frame over one step, and the new speed.
+
+        :param speed: current speed [m/s]
+        :param action: an :class:`EgoAction`
+        :return: ((dx, dy, dheading), new speed)
+        """
+        if not 0 <= int(action) < len(self.curvature):
+            raise ValueError(f"invalid ego action {action!r}: expected an integer in [0, {len(self.curvature) - 1}]")
+        new_speed = self.next_speed(speed, int(action))
+        distance = 0.5 * (speed + new_speed) * DT
+        dheading = float(self.curvature[int(action)] * distance)
+        # The chord of an arc of turn dheading points half-way through the turn.
+        return np.array([distance * np.cos(dheading / 2.0), distance * np.sin(dheading / 2.0),
+                         dheading]), new_speed
+
+    def step(self, state: EgoState, action: int) -> EgoState:
+        """The ego state after one step of ``action``."""
+        (dx, dy, dheading), speed = self.pose_change(state.speed, action)
+        c, s = np.cos(state.heading), np.sin(state.heading)
+        return EgoState(state.x + c * dx - s * dy, state.y + s * dx + c * dy,
+                        float(wrap_angle(state.heading + dheading)), speed)

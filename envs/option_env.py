@@ -1,0 +1,113 @@
+"""``GCCPDecider-v0``: the decision-maker's option env (paper III-D, r^d, Algorithm 1).
+
+The action is a subgoal index. The env runs a motion-planner towards that subgoal for T_m steps
+(fewer if the episode ends) and returns the decision-maker's reward. ``action_masks()`` asks a mask
+function (the GCCP module) which subgoals are safe; without one, or while masks are off, all are.
+Each step's ``info`` carries the ground-truth future of the decision just taken (``future``,
+``future_mask``: the next T_f poses of the ego and the neighbours of the observation, ego frame).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from gccp_envs.base_env import IntersectionBaseEnv, Obs
+from gccp_envs.observation import pose_space
+from gccp_envs.rewards import decider_reward, goal_errors, goal_reached, planner_reward
+from gccp_envs.scripted import ScriptedPlanner
+from gccp_envs.world import StepOutcome
+
+Planner = Callable[[Obs, np.ndarray], int]
+"""A motion-planner: (planner observation, action mask) -> ego action."""
+MaskFunction = Callable[[Obs], np.ndarray]
+"""A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed."""
+
+
+class GCCPDeciderEnv(IntersectionBaseEnv):
+    """Option env whose action is one of the N subgoal candidates.
+
+    :param planner: the motion-planner run for each option; default :class:`ScriptedPlanner`
+    :param mask_fn: the subgoal mask (GCCP); default none (every subgoal allowed)
+    """
+
+    def __init__(self, *args: Any, planner: Planner | None = None, mask_fn: MaskFunction | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        n = self.config.num_subgoals
+        self.action_space = spaces.Discrete(n)
+        self.observation_space = spaces.Dict({**self._state_spaces, "task_goal": pose_space(),
+                                              "subgoals": pose_space(n)})
+        self.planner: Planner = planner or ScriptedPlanner(self.config)
+        self.mask_fn = mask_fn
+        self._last_obs: Obs | None = None
+        self._masked: np.ndarray | None = None
+
+    def set_mask_fn(self, mask_fn: MaskFunction | None) -> None:
+        """Install (or remove with ``None``) the subgoal mask; callable through ``env_method``."""
+        self.mask_fn = mask_fn
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[Obs, dict[str, Any]]:
+        """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
+        self._reset_world(seed, options)
+        self._subgoal = None
+        self._last_obs = self._observe()
+        return self._last_obs, {"task": self.world.task}
+
+    def _observe(self) -> Obs:
+        world = self.world
+        return {**self._state(), "task_goal": self._in_ego_frame(world.task_goal),
+                "subgoals": self._in_ego_frame(world.subgoal_candidates())}
+
+    def action_masks(self) -> np.ndarray:
+        """Allowed subgoals. If the mask function allows none, only the nearest candidate is allowed:
+        holding back is the least risky choice when every subgoal is predicted to collide."""
+        n = self.config.num_subgoals
+        if self.mask_fn is None or self._last_obs is None:
+            self._masked = np.zeros(n, bool)
+            return np.ones(n, bool)
+        mask = np.asarray(self.mask_fn(self._last_obs), bool).reshape(n)
+        self._masked = ~mask
+        if not mask.any():
+            mask = np.zeros(n, bool)
+            mask[int(np.argmin(np.hypot(*self._last_obs["subgoals"][:, :2].T)))] = True
+        return mask
+
+    def step(self, action: np.int64 | int) -> tuple[Obs, float, bool, bool, dict[str, Any]]:
+        """Run the planner towards subgoal ``action`` for up to T_m steps."""
+        index = self._check_action(action)
+        world, cfg = self.world, self.config
+        self._subgoal = world.subgoal_candidates()[index].copy()
+        record = world.begin_decision()
+        distance = goal_errors(world.ego, self._subgoal)[0]
+        reached, planner_return = False, 0.0
+        outcome, truncated = StepOutcome(), False
+        for _ in range(cfg.decision_period):
+            planner_obs = {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
+            ego_action = int(self.planner(planner_obs, world.action_mask()))
+            before = goal_errors(world.ego, self._subgoal)
+            outcome = world.step(ego_action)
+            after = goal_errors(world.ego, self._subgoal)
+            arrived = not reached and goal_reached(cfg, after)
+            reached |= arrived
+            planner_return += sum(planner_reward(cfg, before, after, arrived, outcome.crashed,
+                                                 outcome.offroad).values())
+            truncated = not outcome.terminal and self._truncated()
+            if outcome.terminal or truncated:
+                break
+        terms = decider_reward(cfg, outcome.success, reached, distance)
+        future, future_mask = world.decision_future(record)
+        info: dict[str, Any] = {"reward_terms": terms, "subgoal_reached": reached,
+                                "planner_return": planner_return, "future": future,
+                                "future_mask": future_mask}
+        if outcome.terminal or truncated:
+            info.update(self._episode_info(outcome, truncated))
+        self._last_obs = self._observe()
+        return self._last_obs, float(sum(terms.values())), outcome.terminal, truncated, info
+
+    def _render_extras(self) -> dict[str, Any]:
+        return {**super()._render_extras(), "masked": self._masked}

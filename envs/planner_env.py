@@ -1,0 +1,76 @@
+"""``GCCPPlanner-v0``: the motion-planner's subgoal-conditioned env (paper III-D, r^m).
+
+A subgoal is drawn uniformly from the N candidates at reset and every T_m steps; the planner drives
+towards it with the 6 discrete actions. The episode ends on a collision, leaving the road, reaching
+the task's exit (or another exit), or the time limit.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from gccp_envs.base_env import IntersectionBaseEnv, Obs
+from gccp_envs.observation import pose_space
+from gccp_envs.rewards import goal_errors, goal_reached, planner_reward
+from gccp_envs.world import StepOutcome
+
+
+class GCCPPlannerEnv(IntersectionBaseEnv):
+    """Subgoal-conditioned motion-planning env; ``action_masks()`` keeps the ego on the road."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.action_space = spaces.Discrete(6)
+        self.observation_space = spaces.Dict({**self._state_spaces, "goal": pose_space()})
+        self._arrived = False
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[Obs, dict[str, Any]]:
+        """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
+        self._reset_world(seed, options)
+        self._choose_goal()
+        return self._observe(), {"task": self.world.task}
+
+    def _choose_goal(self) -> None:
+        candidates = self.world.subgoal_candidates()
+        self._subgoal = candidates[int(self.np_random.integers(len(candidates)))].copy()
+        self._arrived = False
+
+    def _observe(self) -> Obs:
+        assert self._subgoal is not None
+        return {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
+
+    def _goal_arrived(self, outcome: StepOutcome, errors: tuple[float, float]) -> bool:
+        """Whether the goal was reached for the first time in this step."""
+        arrived = not self._arrived and goal_reached(self.config, errors)
+        self._arrived |= arrived
+        return arrived
+
+    def _after_step(self) -> None:
+        if self.world.steps % self.config.decision_period == 0:
+            self._choose_goal()
+
+    def step(self, action: np.int64 | int) -> tuple[Obs, float, bool, bool, dict[str, Any]]:
+        """One 0.1 s step of an ego action."""
+        action = self._check_action(action)
+        assert self._subgoal is not None
+        before = goal_errors(self.world.ego, self._subgoal)
+        outcome = self.world.step(int(action))
+        after = goal_errors(self.world.ego, self._subgoal)
+        arrived = self._goal_arrived(outcome, after)
+        terms = planner_reward(self.config, before, after, arrived, outcome.crashed, outcome.offroad)
+        terminated = outcome.terminal
+        truncated = not terminated and self._truncated()
+        info: dict[str, Any] = {"reward_terms": terms, "goal_reached": arrived}
+        if terminated or truncated:
+            info.update(self._episode_info(outcome, truncated))
+        else:
+            self._after_step()
+        return self._observe(), float(sum(terms.values())), terminated, truncated, info
+
+    def action_masks(self) -> np.ndarray:
+        """Actions that keep the ego on the road next step (never all False)."""
+        return self.world.action_mask()

@@ -1,0 +1,252 @@
+"""The simulation behind every env: road, traffic, ego, pose history and episode outcomes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gccp_envs.action import EgoMotion, EgoState
+from gccp_envs.config import DT, TASKS, IntersectionConfig
+from gccp_envs.geometry import FloatArray, box_corners, poses_to_frame
+from gccp_envs.scenario import TURN_OFFSET, layout_for
+from gccp_envs.subgoals import SubgoalSampler
+from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, Traffic
+
+EGO_ARM = 0
+"""The ego always enters from the south arm."""
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """What happened to the ego in one step."""
+
+    crashed: bool = False
+    offroad: bool = False
+    success: bool = False
+    wrong_exit: bool = False
+
+    @property
+    def terminal(self) -> bool:
+        """Whether the episode ends."""
+        return self.crashed or self.offroad or self.success or self.wrong_exit
+
+
+@dataclass(frozen=True)
+class DecisionRecord:
+    """Who was in the state at a decision point, to collect their ground-truth futures later."""
+
+    step: int
+    slots: NDArray[np.int64]
+    uids: NDArray[np.int64]
+    origin: FloatArray
+    heading: float
+
+
+class IntersectionWorld:
+    """One intersection episode: call :meth:`reset`, then :meth:`step` with ego actions."""
+
+    def __init__(self, config: IntersectionConfig) -> None:
+        self.config = config
+        self.layout = layout_for(config)
+        self.motion = EgoMotion(config)
+        self.sampler = SubgoalSampler(self.layout, config)
+        self.ego_slot = config.max_vehicles
+        """Slot of the ego in the pose history (after the traffic's slots)."""
+        self._hist_len = config.history_length + config.prediction_horizon + 2
+        self.rng = np.random.default_rng()
+        self.traffic = Traffic(self.layout, config, self.rng)
+        self.task = "straight"
+        self.ego = EgoState(0.0, 0.0, 0.0, 0.0)
+        self.steps = 0
+        self.task_goal = np.zeros(3)
+        self._task_paths: list[int] = []
+        self._candidates: FloatArray | None = None
+
+    # --- episode -------------------------------------------------------------------------------------
+    def reset(self, rng: np.random.Generator, task: str | None = None) -> None:
+        """Start an episode: populate the traffic, then place the ego on its arm.
+
+        :param rng: the source of all randomness of the episode
+        :param task: 'left' | 'straight' | 'right'; default the config's (drawn if 'mixed')
+        """
+        cfg = self.config
+        self.rng = rng
+        task = task or cfg.task
+        if task == "mixed":
+            task = TASKS[int(rng.integers(len(TASKS)))]
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}: expected one of {', '.join(TASKS)}")
+        self.task = task
+        self.task_goal = self.layout.task_goal(task)
+        self._task_paths = self.layout.paths_from(EGO_ARM, turn=task)
+        self.traffic = Traffic(self.layout, cfg, rng)
+        self._hist = np.zeros((self._hist_len, self.ego_slot + 1, 4))
+        self._hist_uid = np.full((self._hist_len, self.ego_slot + 1), -1, np.int64)
+        warmup = round(cfg.warmup_time / DT)
+        for step in range(-warmup, 0):
+            self._spawn_traffic(None)
+            self.traffic.step(None)
+            self.traffic.detect_crashes(None)
+            self.steps = step
+            self._record(ego=False)
+        self.steps = 0
+        self._place_ego()
+        self._record()
+        self._backfill_ego_history()
+        self._candidates = None
+
+    def _backfill_ego_history(self) -> None:
+        """Give the new ego a past: it arrived at constant speed along its heading."""
+        ego = self.ego
+        for k in range(1, self._hist_len):
+            row = -k % self._hist_len
+            back = ego.speed * k * DT
+            self._hist[row, self.ego_slot] = (ego.x - back * np.cos(ego.heading),
+                                              ego.y - back * np.sin(ego.heading), ego.heading, ego.speed)
+            self._hist_uid[row, self.ego_slot] = 0
+
+    def _place_ego(self) -> None:
+        cfg, layout, rng = self.config, self.layout, self.rng
+        lanes = range(layout.lanes) if cfg.ego_lane == "random" else \
+            sorted({layout.movements[p].lane for p in self._task_paths})
+        lane = int(rng.choice(list(lanes)))
+        path = layout.paths_from(EGO_ARM, lane=lane)[0]
+        s = layout.stop_s - rng.uniform(*cfg.ego_start_distance)
+        x, y, heading = layout.paths.pose_at(np.array(path), np.array(s))
+        traffic = self.traffic
+        idx = traffic.indices
+        too_close = np.hypot(traffic.pose[idx, 0] - x, traffic.pose[idx, 1] - y) < 15.0
+        traffic.remove(idx[too_close])
+        idx = traffic.indices
+        ahead_s, ahead_d = layout.paths.lookup(np.full(len(idx), path), traffic.pose[idx, :2])
+        ahead = (np.abs(ahead_d) < VEHICLE_WIDTH + 0.5) & (ahead_s > s)
+        gap = float(np.min(ahead_s[ahead] - s, initial=np.inf)) - VEHICLE_LENGTH
+        speed = min(rng.uniform(*cfg.ego_start_speed),
+                    np.sqrt(2.0 * cfg.deceleration * max(gap - 4.0, 0.0)))
+        self.ego = EgoState(float(x), float(y), float(heading), float(speed))
+
+    def _spawn_traffic(self, ego: Obstacle | None) -> None:
+        if self.rng.uniform() < self.config.spawn_probability:
+            self.traffic.spawn_random(ego)
+
+    def step(self, action: int) -> StepOutcome:
+        """Move the ego by one action, then the traffic; detect the outcome."""
+        self.ego = self.motion.step(self.ego, action)
+        ego = self.ego_obstacle()
+        self.traffic.step(ego)
+        crashed = self.traffic.detect_crashes(ego)
+        self._spawn_traffic(ego)
+        self.steps += 1
+        self._candidates = None
+        self._record()
+        exit_arm = self.layout.exit_reached(np.array([self.ego.x, self.ego.y]))
+        success = exit_arm == TURN_OFFSET[self.task]
+        return StepOutcome(crashed=crashed, offroad=not self.ego_on_road(self.ego),
+                           success=success, wrong_exit=exit_arm is not None and not success)
+
+    @property
+    def time(self) -> float:
+        """Seconds since the ego appeared."""
+        return self.steps * DT
+
+    # --- ego queries ---------------------------------------------------------------------------------
+    def ego_obstacle(self) -> Obstacle:
+        """The ego as the traffic sees it."""
+        return Obstacle(self.ego.x, self.ego.y, self.ego.heading, self.ego.speed)
+
+    def ego_on_road(self, ego: EgoState) -> bool:
+        """Whether all four corners of the ego's box are on the drivable area."""
+        corners = box_corners(np.array(ego.x), np.array(ego.y), np.array(ego.heading),
+                              np.array(VEHICLE_LENGTH), np.array(VEHICLE_WIDTH))
+        return bool(self.layout.is_drivable(corners[:, 0], corners[:, 1]).all())
+
+    def action_mask(self) -> NDArray[np.bool_]:
+        """Actions that keep the ego on the road for the next step; all of them if none does."""
+        mask = np.array([self.ego_on_road(self.motion.step(self.ego, a))
+                         for a in range(len(self.motion.curvature))])
+        return mask if mask.any() else np.ones_like(mask)
+
+    def ego_routes(self) -> tuple[list[int], FloatArray]:
+        """The ego's routes towards its task goal, nearest first, and its arc length on each.
+
+        Before the stop line every path of the task is a route (a lane change may lead to it);
+        after it, only paths within a lane width of the ego.
+        """
+        cfg, layout = self.config, self.layout
+        paths = np.array(self._task_paths)
+        s, d = layout.paths.project(paths, np.array([self.ego.x, self.ego.y]))
+        order = np.argsort(np.abs(d))
+        keep = [k for k in order if s[k] < layout.stop_s or abs(d[k]) < cfg.lane_width] or [order[0]]
+        keep = keep[: cfg.num_routes]
+        return [int(paths[k]) for k in keep], s[keep]
+
+    def subgoal_candidates(self) -> FloatArray:
+        """The N subgoal candidates (x, y, heading) in world coordinates, cached per step."""
+        if self._candidates is None:
+            routes, s = self.ego_routes()
+            self._candidates = self.sampler.sample(routes, s, self.task_goal)
+        return self._candidates
+
+    def neighbours(self) -> NDArray[np.int64]:
+        """Slots of the N_s nearest other vehicles within the observation radius, nearest first."""
+        idx = self.traffic.indices
+        dist = np.hypot(self.traffic.pose[idx, 0] - self.ego.x, self.traffic.pose[idx, 1] - self.ego.y)
+        order = np.argsort(dist, kind="stable")
+        order = order[dist[order] <= self.config.observation_radius]
+        return idx[order[: self.config.num_neighbours]]
+
+    # --- pose history and ground-truth futures -----------------------------------------------------
+    def _record(self, ego: bool = True) -> None:
+        row = self.steps % self._hist_len
+        traffic = self.traffic
+        self._hist_uid[row] = -1
+        idx = traffic.indices
+        self._hist[row, idx, :3] = traffic.pose[idx]
+        self._hist[row, idx, 3] = traffic.speed[idx]
+        self._hist_uid[row, idx] = traffic.uid[idx]
+        if ego:
+            self._hist[row, self.ego_slot] = self.ego.as_array()
+            self._hist_uid[row, self.ego_slot] = 0
+
+    def slot_uids(self, slots: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Current unique ids of slots (the ego's is 0 in the history, never reused)."""
+        uids = np.where(slots == self.ego_slot, 0, self.traffic.uid[np.minimum(slots, self.ego_slot - 1)])
+        return uids.astype(np.int64)
+
+    def poses_between(self, first: int, last: int, slots: NDArray[np.int64],
+                      uids: NDArray[np.int64]) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """World poses (x, y, heading, speed) of slots at steps first..last, and where they are valid.
+
+        A pose is valid if it was recorded for the same vehicle (slots are reused) and is still in
+        the history window.
+        """
+        steps = np.arange(first, last + 1)
+        rows = steps % self._hist_len
+        poses = self._hist[rows][:, slots]
+        valid = (self._hist_uid[rows][:, slots] == uids[None]) \
+            & (steps <= self.steps)[:, None] & (steps > self.steps - self._hist_len)[:, None]
+        return poses, valid
+
+    def begin_decision(self) -> DecisionRecord:
+        """Remember the ego and the neighbours of the state now, for :meth:`decision_future`."""
+        slots = np.concatenate([[self.ego_slot], self.neighbours()]).astype(np.int64)
+        return DecisionRecord(self.steps, slots, self.slot_uids(slots),
+                              np.array([self.ego.x, self.ego.y]), self.ego.heading)
+
+    def decision_future(self, record: DecisionRecord) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Ground-truth next T_f poses (x, y, heading) in the decision's ego frame, with presence flags.
+
+        Rows follow the state's vehicle order (ego first) padded to N_s + 1; steps not simulated yet
+        (the episode ended) are absent.
+        """
+        horizon, rows = self.config.prediction_horizon, self.config.num_neighbours + 1
+        poses, valid = self.poses_between(record.step + 1, record.step + horizon, record.slots, record.uids)
+        future = np.zeros((rows, horizon, 3), np.float32)
+        present = np.zeros((rows, horizon), bool)
+        n = len(record.slots)
+        future[:n] = poses_to_frame(poses[..., :3], record.origin, record.heading).transpose(1, 0, 2)
+        present[:n] = valid.T
+        future[~present] = 0.0
+        return future, present
