@@ -21,12 +21,14 @@ from gccp_envs.world import IntersectionWorld
 
 HISTORY_FEATURES = 9
 ROUTE_FEATURES = 8
+BOUND = 1000.0
+"""Bound of every coordinate-like feature: far beyond any distance on the map."""
 
 
 def state_spaces(config: IntersectionConfig) -> dict[str, spaces.Box]:
     """Gymnasium spaces of the state arrays."""
     vehicles, routes = config.num_neighbours + 1, config.num_routes
-    unbounded = {"low": -np.inf, "high": np.inf, "dtype": np.float32}
+    unbounded = {"low": -BOUND, "high": BOUND, "dtype": np.float32}
     return {
         "history": spaces.Box(shape=(vehicles, config.history_length, HISTORY_FEATURES), **unbounded),
         "history_mask": spaces.Box(0.0, 1.0, (vehicles, config.history_length), np.float32),
@@ -38,7 +40,7 @@ def state_spaces(config: IntersectionConfig) -> dict[str, spaces.Box]:
 
 def pose_space(*shape: int) -> spaces.Box:
     """Space of poses (x, y, heading) in the ego frame."""
-    return spaces.Box(-np.inf, np.inf, (*shape, 3), np.float32)
+    return spaces.Box(-BOUND, BOUND, (*shape, 3), np.float32)
 
 
 class SceneObserver:
