@@ -67,17 +67,25 @@ class EgoMotion:
         :return: ((dx, dy, dheading), new speed)
         """
         if not 0 <= int(action) < len(self.curvature):
-            raise ValueError(f"invalid ego action {action!r}: expected an integer in [0, {len(self.curvature) - 1}]")
+            raise ValueError(
+                f"invalid ego action {action!r}: expected an integer in [0, {len(self.curvature) - 1}]"
+            )
         new_speed = self.next_speed(speed, int(action))
         distance = 0.5 * (speed + new_speed) * DT
         dheading = float(self.curvature[int(action)] * distance)
         # The chord of an arc of turn dheading points half-way through the turn.
-        return np.array([distance * np.cos(dheading / 2.0), distance * np.sin(dheading / 2.0),
-                         dheading]), new_speed
+        return (
+            np.array([distance * np.cos(dheading / 2.0), distance * np.sin(dheading / 2.0), dheading]),
+            new_speed,
+        )
 
     def step(self, state: EgoState, action: int) -> EgoState:
         """The ego state after one step of ``action``."""
         (dx, dy, dheading), speed = self.pose_change(state.speed, action)
         c, s = np.cos(state.heading), np.sin(state.heading)
-        return EgoState(state.x + c * dx - s * dy, state.y + s * dx + c * dy,
-                        float(wrap_angle(state.heading + dheading)), speed)
+        return EgoState(
+            state.x + c * dx - s * dy,
+            state.y + s * dx + c * dy,
+            float(wrap_angle(state.heading + dheading)),
+            speed,
+        )

@@ -16,15 +16,16 @@ from gccp_envs.world import IntersectionWorld, StepOutcome
 Obs = dict[str, np.ndarray]
 
 
-def make_config(config: IntersectionConfig | Mapping[str, Any] | None, overrides: Mapping[str, Any]
-                ) -> IntersectionConfig:
+def make_config(
+    config: IntersectionConfig | Mapping[str, Any] | None, overrides: Mapping[str, Any]
+) -> IntersectionConfig:
     """A config from a config object or a mapping plus keyword overrides (unknown keys rejected)."""
     if isinstance(config, IntersectionConfig):
         return config.replace(**overrides) if overrides else config
     return IntersectionConfig.from_dict(config, **overrides)
 
 
-class IntersectionBaseEnv(gym.Env[Obs, np.int64]):
+class IntersectionBaseEnv(gym.Env):
     """Base of the three envs. Subclasses define the goal part of the observation and the step.
 
     :param config: an :class:`IntersectionConfig` or a mapping of its fields
@@ -34,8 +35,12 @@ class IntersectionBaseEnv(gym.Env[Obs, np.int64]):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, config: IntersectionConfig | Mapping[str, Any] | None = None,
-                 render_mode: str | None = None, **overrides: Any) -> None:
+    def __init__(
+        self,
+        config: IntersectionConfig | Mapping[str, Any] | None = None,
+        render_mode: str | None = None,
+        **overrides: Any,
+    ) -> None:
         self.config = make_config(config, overrides)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"unsupported render_mode {render_mode!r}: expected None or 'rgb_array'")
@@ -72,15 +77,20 @@ class IntersectionBaseEnv(gym.Env[Obs, np.int64]):
 
     def _episode_info(self, outcome: StepOutcome, truncated: bool) -> dict[str, Any]:
         """Outcome flags; ``is_success`` means this task's own exit was reached."""
-        return {"task": self.world.task, "is_success": outcome.success, "crashed": outcome.crashed,
-                "offroad": outcome.offroad, "wrong_exit": outcome.wrong_exit,
-                "timeout": truncated and not outcome.terminal}
+        return {
+            "task": self.world.task,
+            "is_success": outcome.success,
+            "crashed": outcome.crashed,
+            "offroad": outcome.offroad,
+            "wrong_exit": outcome.wrong_exit,
+            "timeout": truncated and not outcome.terminal,
+        }
 
     # --- rendering -----------------------------------------------------------------------------------
     def _render_extras(self) -> dict[str, Any]:
         return {"candidates": self.world.subgoal_candidates(), "chosen": self._subgoal}
 
-    def render(self) -> np.ndarray | None:  # type: ignore[override]
+    def render(self) -> np.ndarray | None:
         """An RGB frame (H, W, 3) of the junction, or ``None`` without a render mode."""
         if self.render_mode is None:
             return None

@@ -45,13 +45,14 @@ class IntersectionConfig:
     ego_start_speed: tuple[float, float] = (4.0, 8.0)
     """Range [m/s] of the ego's start speed, drawn uniformly."""
     ego_lane: str = "random"
-    """'random': ego starts on any lane of its arm (a lane change may be needed); 'task': a lane of the task."""
+    """'random': ego starts on any lane of its arm (it may need a lane change); 'task': a task lane."""
     exit_distance: float = 20.0
     """Distance [m] past the junction box on the task's exit arm that counts as task success."""
 
     # --- traffic ---------------------------------------------------------------------------------
-    spawn_probability: float = 0.12
-    """Chance per 0.1 s step of one spawn attempt on a random inbound lane (highway-env semantics)."""
+    spawn_probability: float = 0.06
+    """Chance per 0.1 s step of one spawn attempt on a random inbound lane (highway-env semantics;
+    0.06 at 10 Hz matches the density of intersection-v0 at its default 1 Hz)."""
     warmup_time: float = 12.0
     """Seconds of traffic simulated before the ego appears, so the junction is populated."""
     npc_speed_range: tuple[float, float] = (7.0, 10.0)
@@ -149,7 +150,11 @@ class IntersectionConfig:
         unknown = sorted(set(merged) - known)
         if unknown:
             hints = [
-                f"{key!r} (did you mean {close[0]!r}?)" if (close := difflib.get_close_matches(key, known, 1)) else repr(key)
+                (
+                    f"{key!r} (did you mean {close[0]!r}?)"
+                    if (close := difflib.get_close_matches(key, known, 1))
+                    else repr(key)
+                )
                 for key in unknown
             ]
             raise ValueError(f"unknown intersection config key(s): {', '.join(hints)}")
@@ -181,17 +186,41 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError(f"unknown task {config.task!r}: expected one of {', '.join((*TASKS, 'mixed'))}")
     if config.ego_lane not in ("random", "task"):
         raise ValueError(f"ego_lane must be 'random' or 'task', got {config.ego_lane!r}")
-    positive_ints = ("lanes_per_approach", "num_neighbours", "history_length", "num_routes",
-                     "route_points", "bev_size", "num_subgoals", "decision_period",
-                     "prediction_horizon", "max_vehicles")
+    positive_ints = (
+        "lanes_per_approach",
+        "num_neighbours",
+        "history_length",
+        "num_routes",
+        "route_points",
+        "bev_size",
+        "num_subgoals",
+        "decision_period",
+        "prediction_horizon",
+        "max_vehicles",
+    )
     for name in positive_ints:
         value = getattr(config, name)
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    positive_floats = ("lane_width", "corner_radius", "approach_length", "duration", "exit_distance",
-                       "cruise_speed", "acceleration", "deceleration", "slow_turn_curvature",
-                       "quick_turn_curvature", "route_spacing", "bev_extent", "observation_radius",
-                       "subgoal_spacing", "subgoal_range", "subgoal_reach_radius", "subgoal_reach_heading")
+    positive_floats = (
+        "lane_width",
+        "corner_radius",
+        "approach_length",
+        "duration",
+        "exit_distance",
+        "cruise_speed",
+        "acceleration",
+        "deceleration",
+        "slow_turn_curvature",
+        "quick_turn_curvature",
+        "route_spacing",
+        "bev_extent",
+        "observation_radius",
+        "subgoal_spacing",
+        "subgoal_range",
+        "subgoal_reach_radius",
+        "subgoal_reach_heading",
+    )
     for name in positive_floats:
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:

@@ -52,8 +52,9 @@ def poses_to_frame(poses: FloatArray, origin: FloatArray, heading: float) -> Flo
     return out
 
 
-def box_corners(x: FloatArray, y: FloatArray, heading: FloatArray, length: FloatArray,
-                width: FloatArray) -> FloatArray:
+def box_corners(
+    x: FloatArray, y: FloatArray, heading: FloatArray, length: FloatArray, width: FloatArray
+) -> FloatArray:
     """Corners (..., 4, 2) of oriented boxes centred at (x, y).
 
     :return: corners in counter-clockwise order on the math plane
@@ -79,8 +80,15 @@ def boxes_overlap(a: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
     """
     a, b = np.broadcast_arrays(a, b)
     # Two edge directions per box are enough for rectangles.
-    axes = np.stack((a[..., 1, :] - a[..., 0, :], a[..., 3, :] - a[..., 0, :],
-                     b[..., 1, :] - b[..., 0, :], b[..., 3, :] - b[..., 0, :]), axis=-2)
+    axes = np.stack(
+        (
+            a[..., 1, :] - a[..., 0, :],
+            a[..., 3, :] - a[..., 0, :],
+            b[..., 1, :] - b[..., 0, :],
+            b[..., 3, :] - b[..., 0, :],
+        ),
+        axis=-2,
+    )
     pa = np.einsum("...kd,...cd->...kc", axes, a)
     pb = np.einsum("...kd,...cd->...kc", axes, b)
     separated = (pa.max(-1) <= pb.min(-1)) | (pb.max(-1) <= pa.min(-1))
@@ -114,15 +122,24 @@ class Segment:
     def arc(center: FloatArray, radius: float, phase0: float, phase1: float) -> Segment:
         """A circular arc from ``phase0`` to ``phase1`` (the sign of their difference is the sense)."""
         sense = 1.0 if phase1 > phase0 else -1.0
-        return Segment(abs(phase1 - phase0) * radius, center=(float(center[0]), float(center[1])),
-                       radius=float(radius), phase0=float(phase0), sense=sense)
+        return Segment(
+            abs(phase1 - phase0) * radius,
+            center=(float(center[0]), float(center[1])),
+            radius=float(radius),
+            phase0=float(phase0),
+            sense=sense,
+        )
 
     def pose(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Positions and unwrapped headings at arc lengths ``s`` along the segment."""
         s = np.asarray(s, float)
         if self.radius == 0.0:
             heading = np.full_like(s, np.arctan2(self.direction[1], self.direction[0]))
-            return self.start[0] + s * self.direction[0], self.start[1] + s * self.direction[1], heading
+            return (
+                self.start[0] + s * self.direction[0],
+                self.start[1] + s * self.direction[1],
+                heading,
+            )
         phase = self.phase0 + self.sense * s / self.radius
         x = self.center[0] + self.radius * np.cos(phase)
         y = self.center[1] + self.radius * np.sin(phase)
@@ -244,7 +261,9 @@ class PathSet:
         center, sense = self._seg_center[path], self._seg_sense[path]
         cx, cy = px - center[..., 0], py - center[..., 1]
         safe_radius = np.where(is_arc, radius, 1.0)
-        swept = np.mod(sense * (np.arctan2(cy, cx) - self._seg_phase0[path]) + np.pi / 2, 2 * np.pi) - np.pi / 2
+        swept = (
+            np.mod(sense * (np.arctan2(cy, cx) - self._seg_phase0[path]) + np.pi / 2, 2 * np.pi) - np.pi / 2
+        )
         t_arc = np.clip(swept * safe_radius, 0.0, length)
         t = np.where(is_arc, t_arc, t_line)
         phase = self._seg_phase0[path] + sense * t / safe_radius

@@ -28,11 +28,12 @@ BOUND = 1000.0
 def state_spaces(config: IntersectionConfig) -> dict[str, spaces.Box]:
     """Gymnasium spaces of the state arrays."""
     vehicles, routes = config.num_neighbours + 1, config.num_routes
-    unbounded = {"low": -BOUND, "high": BOUND, "dtype": np.float32}
     return {
-        "history": spaces.Box(shape=(vehicles, config.history_length, HISTORY_FEATURES), **unbounded),
+        "history": spaces.Box(-BOUND, BOUND, (vehicles, config.history_length, HISTORY_FEATURES), np.float32),
         "history_mask": spaces.Box(0.0, 1.0, (vehicles, config.history_length), np.float32),
-        "routes": spaces.Box(shape=(vehicles, routes, config.route_points, ROUTE_FEATURES), **unbounded),
+        "routes": spaces.Box(
+            -BOUND, BOUND, (vehicles, routes, config.route_points, ROUTE_FEATURES), np.float32
+        ),
         "routes_mask": spaces.Box(0.0, 1.0, (vehicles, routes, config.route_points), np.float32),
         "bev": spaces.Box(0, 1, (1, config.bev_size, config.bev_size), np.uint8),
     }
@@ -72,8 +73,13 @@ class SceneObserver:
         slots = np.concatenate([[world.ego_slot], world.neighbours()]).astype(np.int64)
         history, history_mask = self._history(slots)
         routes, routes_mask = self._routes(slots)
-        return {"history": history, "history_mask": history_mask, "routes": routes,
-                "routes_mask": routes_mask, "bev": self._bev()}
+        return {
+            "history": history,
+            "history_mask": history_mask,
+            "routes": routes,
+            "routes_mask": routes_mask,
+            "bev": self._bev(),
+        }
 
     def _history(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cfg, world = self.config, self.world
@@ -83,8 +89,14 @@ class SceneObserver:
         n = len(slots)
         history = np.zeros((cfg.num_neighbours + 1, steps, 9), np.float32)
         mask = np.zeros((cfg.num_neighbours + 1, steps), np.float32)
-        vec = np.concatenate([local[:-1], local[1:], np.broadcast_to(
-            np.arange(n, dtype=np.float32)[None, :, None], (steps, n, 1))], -1)
+        vec = np.concatenate(
+            [
+                local[:-1],
+                local[1:],
+                np.broadcast_to(np.arange(n, dtype=np.float32)[None, :, None], (steps, n, 1)),
+            ],
+            -1,
+        )
         ok = valid[:-1] & valid[1:]
         history[:n] = np.where(ok[..., None], vec, 0.0).transpose(1, 0, 2)
         mask[:n] = ok.T
@@ -106,8 +118,11 @@ class SceneObserver:
             options = self._entry_routes[entry]
             s, d = layout.paths.lookup(np.maximum(options, 0), traffic.pose[npc, None, :2])
             # Past the stop line, only the movements the vehicle is still on stay open.
-            open_ = (options >= 0) & ((traffic.s[npc, None] < layout.stop_s) | (np.abs(d) < 1.0)
-                                      | (options == traffic.path[npc, None]))
+            open_ = (options >= 0) & (
+                (traffic.s[npc, None] < layout.stop_s)
+                | (np.abs(d) < 1.0)
+                | (options == traffic.path[npc, None])
+            )
             paths[1:] = np.where(open_, options, -1)
             arc[1:] = np.where(options == traffic.path[npc, None], traffic.s[npc, None], s)
         return paths, arc
@@ -121,8 +136,10 @@ class SceneObserver:
         safe = np.maximum(paths, 0)[..., None]
         world_poses = layout.paths.pose_at(np.broadcast_to(safe, s.shape), s)
         local = self.to_ego(world_poses)
-        ids = np.broadcast_to(np.stack(np.meshgrid(np.arange(n), np.arange(cfg.num_routes), indexing="ij"),
-                                       -1)[:, :, None, :], (n, cfg.num_routes, points, 2))
+        ids = np.broadcast_to(
+            np.stack(np.meshgrid(np.arange(n), np.arange(cfg.num_routes), indexing="ij"), -1)[:, :, None, :],
+            (n, cfg.num_routes, points, 2),
+        )
         vec = np.concatenate([local[:, :, :-1], local[:, :, 1:], ids.astype(np.float32)], -1)
         ok = (paths[..., None] >= 0) & (s[..., 1:] <= layout.paths.lengths[safe])
         routes = np.zeros((cfg.num_neighbours + 1, cfg.num_routes, points, ROUTE_FEATURES), np.float32)

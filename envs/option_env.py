@@ -34,13 +34,19 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
     :param mask_fn: the subgoal mask (GCCP); default none (every subgoal allowed)
     """
 
-    def __init__(self, *args: Any, planner: Planner | None = None, mask_fn: MaskFunction | None = None,
-                 **kwargs: Any) -> None:
+    def __init__(
+        self,
+        *args: Any,
+        planner: Planner | None = None,
+        mask_fn: MaskFunction | None = None,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(*args, **kwargs)
         n = self.config.num_subgoals
         self.action_space = spaces.Discrete(n)
-        self.observation_space = spaces.Dict({**self._state_spaces, "task_goal": pose_space(),
-                                              "subgoals": pose_space(n)})
+        self.observation_space = spaces.Dict(
+            {**self._state_spaces, "task_goal": pose_space(), "subgoals": pose_space(n)}
+        )
         self.planner: Planner = planner or ScriptedPlanner(self.config)
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None
@@ -50,8 +56,9 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         """Install (or remove with ``None``) the subgoal mask; callable through ``env_method``."""
         self.mask_fn = mask_fn
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
-              ) -> tuple[Obs, dict[str, Any]]:
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Obs, dict[str, Any]]:
         """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
         self._reset_world(seed, options)
         self._subgoal = None
@@ -60,8 +67,11 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
 
     def _observe(self) -> Obs:
         world = self.world
-        return {**self._state(), "task_goal": self._in_ego_frame(world.task_goal),
-                "subgoals": self._in_ego_frame(world.subgoal_candidates())}
+        return {
+            **self._state(),
+            "task_goal": self._in_ego_frame(world.task_goal),
+            "subgoals": self._in_ego_frame(world.subgoal_candidates()),
+        }
 
     def action_masks(self) -> np.ndarray:
         """Allowed subgoals. If the mask function allows none, only the nearest candidate is allowed:
@@ -94,16 +104,21 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             after = goal_errors(world.ego, self._subgoal)
             arrived = not reached and goal_reached(cfg, after)
             reached |= arrived
-            planner_return += sum(planner_reward(cfg, before, after, arrived, outcome.crashed,
-                                                 outcome.offroad).values())
+            planner_return += sum(
+                planner_reward(cfg, before, after, arrived, outcome.crashed, outcome.offroad).values()
+            )
             truncated = not outcome.terminal and self._truncated()
             if outcome.terminal or truncated:
                 break
         terms = decider_reward(cfg, outcome.success, reached, distance)
         future, future_mask = world.decision_future(record)
-        info: dict[str, Any] = {"reward_terms": terms, "subgoal_reached": reached,
-                                "planner_return": planner_return, "future": future,
-                                "future_mask": future_mask}
+        info: dict[str, Any] = {
+            "reward_terms": terms,
+            "subgoal_reached": reached,
+            "planner_return": planner_return,
+            "future": future,
+            "future_mask": future_mask,
+        }
         if outcome.terminal or truncated:
             info.update(self._episode_info(outcome, truncated))
         self._last_obs = self._observe()

@@ -27,8 +27,9 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         self.observation_space = spaces.Dict({**self._state_spaces, "goal": pose_space()})
         self._arrived = False
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
-              ) -> tuple[Obs, dict[str, Any]]:
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Obs, dict[str, Any]]:
         """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
         self._reset_world(seed, options)
         self._choose_goal()

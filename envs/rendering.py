@@ -13,11 +13,11 @@ from gccp_envs.world import IntersectionWorld
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
-import pygame  # noqa: E402
-from highway_env.road.graphics import RoadGraphics, WorldSurface  # noqa: E402
-from highway_env.road.road import Road  # noqa: E402
-from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
-from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
+import pygame
+from highway_env.road.graphics import RoadGraphics, WorldSurface
+from highway_env.road.road import Road
+from highway_env.vehicle.graphics import VehicleGraphics
+from highway_env.vehicle.kinematics import Vehicle
 
 CANDIDATE_COLOR = (80, 160, 255)
 MASKED_COLOR = (220, 60, 60)
@@ -58,8 +58,13 @@ class IntersectionRenderer:
         rgb[off_road] = OFF_ROAD_COLOR
         del rgb  # unlock the surface
 
-    def frame(self, world: IntersectionWorld, candidates: FloatArray | None = None,
-              chosen: FloatArray | None = None, masked: np.ndarray | None = None) -> np.ndarray:
+    def frame(
+        self,
+        world: IntersectionWorld,
+        candidates: FloatArray | None = None,
+        chosen: FloatArray | None = None,
+        masked: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One frame (H, W, 3) uint8 of the world's current step.
 
         :param candidates: subgoal candidates (N, 3) in world coordinates, drawn as dots
@@ -88,8 +93,9 @@ class IntersectionRenderer:
             pygame.draw.line(surface, CHOSEN_COLOR, centre, tip, 2)
         return np.ascontiguousarray(np.transpose(pygame.surfarray.array3d(surface), (1, 0, 2)))
 
-    def _vehicle(self, position: FloatArray, heading: float, speed: float, color: tuple[int, int, int]
-                 ) -> None:
+    def _vehicle(
+        self, position: FloatArray, heading: float, speed: float, color: tuple[int, int, int]
+    ) -> None:
         vehicle = Vehicle(self.road, position, heading, speed)
         vehicle.color = color
         VehicleGraphics.display(vehicle, self.surface, offscreen=True)

@@ -20,8 +20,14 @@ def goal_reached(config: IntersectionConfig, errors: tuple[float, float]) -> boo
     return errors[0] <= config.subgoal_reach_radius and errors[1] <= config.subgoal_reach_heading
 
 
-def planner_reward(config: IntersectionConfig, before: tuple[float, float], after: tuple[float, float],
-                   arrived: bool, crashed: bool, offroad: bool) -> dict[str, float]:
+def planner_reward(
+    config: IntersectionConfig,
+    before: tuple[float, float],
+    after: tuple[float, float],
+    arrived: bool,
+    crashed: bool,
+    offroad: bool,
+) -> dict[str, float]:
     """Terms of r^m = r_time + r_arr + r_col + r_off + r_dist + r_head for one step.
 
     :param before: goal errors (distance, heading) before the step
@@ -41,8 +47,9 @@ def planner_reward(config: IntersectionConfig, before: tuple[float, float], afte
     }
 
 
-def decider_reward(config: IntersectionConfig, task_reached: bool, subgoal_reached: bool,
-                   subgoal_distance: float) -> dict[str, float]:
+def decider_reward(
+    config: IntersectionConfig, task_reached: bool, subgoal_reached: bool, subgoal_distance: float
+) -> dict[str, float]:
     """Terms of r^d = r_goal + r_subgoal + r_subgoal_dist for one decision.
 
     :param task_reached: whether the task goal was reached during the option

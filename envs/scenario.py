@@ -49,16 +49,29 @@ def _rotate_segment(seg: Segment, arm: int) -> Segment:
         start, direction = rot @ np.array(seg.start), rot @ np.array(seg.direction)
         return Segment(seg.length, (start[0], start[1]), (direction[0], direction[1]))
     center = rot @ np.array(seg.center)
-    return Segment(seg.length, center=(center[0], center[1]), radius=seg.radius,
-                   phase0=seg.phase0 + arm * np.pi / 2.0, sense=seg.sense)
+    return Segment(
+        seg.length,
+        center=(center[0], center[1]),
+        radius=seg.radius,
+        phase0=seg.phase0 + arm * np.pi / 2.0,
+        sense=seg.sense,
+    )
 
 
 class IntersectionLayout:
     """Geometry of the junction: lane paths, conflict zones, speed profiles and the drivable area."""
 
-    def __init__(self, lanes: int, lane_width: float, corner_radius: float, approach_length: float,
-                 exit_distance: float, max_lateral_accel: float = 2.5, comfort_decel: float = 2.0,
-                 top_speed: float = 12.0) -> None:
+    def __init__(
+        self,
+        lanes: int,
+        lane_width: float,
+        corner_radius: float,
+        approach_length: float,
+        exit_distance: float,
+        max_lateral_accel: float = 2.5,
+        comfort_decel: float = 2.0,
+        top_speed: float = 12.0,
+    ) -> None:
         self.lanes = lanes
         self.lane_width = lane_width
         self.half_width = lanes * lane_width
@@ -117,8 +130,7 @@ class IntersectionLayout:
     def _speed_profiles(self, max_lateral_accel: float, decel: float, top_speed: float) -> FloatArray:
         """Highest speed at every sample that still allows comfortable braking into the turns."""
         curvature = self.paths.curvature
-        limit = np.where(curvature > 0, np.sqrt(max_lateral_accel / np.maximum(curvature, 1e-9)),
-                         top_speed)
+        limit = np.where(curvature > 0, np.sqrt(max_lateral_accel / np.maximum(curvature, 1e-9)), top_speed)
         limit = np.minimum(limit, top_speed)
         step = 2.0 * decel * self.paths.resolution
         for k in range(limit.shape[1] - 2, -1, -1):
@@ -139,7 +151,7 @@ class IntersectionLayout:
             for q in range(n):
                 if self.path_entry[p] == self.path_entry[q]:
                     continue
-                sq, dq = self.paths.project(np.full(len(s), q), points)
+                sq, _dq = self.paths.project(np.full(len(s), q), points)
                 on_q = self.paths.pose_at(np.full(len(s), q), sq)[:, :2]
                 near = np.hypot(*(points - on_q).T) < CONFLICT_DISTANCE
                 if near.any():
@@ -149,8 +161,11 @@ class IntersectionLayout:
     # --- queries -----------------------------------------------------------------------------------
     def paths_from(self, arm: int, lane: int | None = None, turn: str | None = None) -> list[int]:
         """Indices of the paths entering on ``arm`` (and ``lane``) making ``turn``."""
-        return [i for i, m in enumerate(self.movements)
-                if m.arm == arm and (lane is None or m.lane == lane) and (turn is None or m.turn == turn)]
+        return [
+            i
+            for i, m in enumerate(self.movements)
+            if m.arm == arm and (lane is None or m.lane == lane) and (turn is None or m.turn == turn)
+        ]
 
     def is_drivable(self, x: FloatArray, y: FloatArray) -> NDArray[np.bool_]:
         """Whether world points lie on the road: both roads plus the rounded junction corners."""
@@ -186,19 +201,25 @@ class IntersectionLayout:
         outer = self.lanes - 1
         added: set[tuple[str, int]] = set()
         for move in self.movements:
-            approach, connector, exit_line = (_rotate_segment(seg, move.arm) for seg in
-                                              self._local_path(move))
+            approach, connector, exit_line = (
+                _rotate_segment(seg, move.arm) for seg in self._local_path(move)
+            )
             if ("in", move.arm * self.lanes + move.lane) not in added:
                 added.add(("in", move.arm * self.lanes + move.lane))
-                net.add_lane(f"o{move.arm}", f"ir{move.arm}", self._hw_lane(approach, [
-                    s if move.lane == 0 else n, c if move.lane == outer else s]))
+                net.add_lane(
+                    f"o{move.arm}",
+                    f"ir{move.arm}",
+                    self._hw_lane(approach, [s if move.lane == 0 else n, c if move.lane == outer else s]),
+                )
             right_kerb = c if move.turn == "right" else n
-            net.add_lane(f"ir{move.arm}", f"il{move.exit_arm}",
-                         self._hw_lane(connector, [n, right_kerb]))
+            net.add_lane(f"ir{move.arm}", f"il{move.exit_arm}", self._hw_lane(connector, [n, right_kerb]))
             if ("out", move.exit_arm * self.lanes + move.exit_lane) not in added:
                 added.add(("out", move.exit_arm * self.lanes + move.exit_lane))
-                net.add_lane(f"il{move.exit_arm}", f"o{move.exit_arm}", self._hw_lane(
-                    exit_line, [n, c if move.exit_lane == outer else s]))
+                net.add_lane(
+                    f"il{move.exit_arm}",
+                    f"o{move.exit_arm}",
+                    self._hw_lane(exit_line, [n, c if move.exit_lane == outer else s]),
+                )
         return net
 
     @staticmethod
@@ -207,18 +228,33 @@ class IntersectionLayout:
             start = np.array(seg.start)
             end = start + seg.length * np.array(seg.direction)
             return StraightLane(start, end, line_types=line_types)
-        return CircularLane(np.array(seg.center), seg.radius, seg.phase0,
-                            seg.phase0 + seg.sense * seg.length / seg.radius,
-                            clockwise=seg.sense > 0, line_types=line_types)
+        return CircularLane(
+            np.array(seg.center),
+            seg.radius,
+            seg.phase0,
+            seg.phase0 + seg.sense * seg.length / seg.radius,
+            clockwise=seg.sense > 0,
+            line_types=line_types,
+        )
 
 
 @lru_cache(maxsize=8)
-def _cached_layout(lanes: int, lane_width: float, corner_radius: float, approach_length: float,
-                   exit_distance: float) -> IntersectionLayout:
+def _cached_layout(
+    lanes: int,
+    lane_width: float,
+    corner_radius: float,
+    approach_length: float,
+    exit_distance: float,
+) -> IntersectionLayout:
     return IntersectionLayout(lanes, lane_width, corner_radius, approach_length, exit_distance)
 
 
 def layout_for(config: IntersectionConfig) -> IntersectionLayout:
     """The (per-process cached) layout of a config."""
-    return _cached_layout(config.lanes_per_approach, config.lane_width, config.corner_radius,
-                          config.approach_length, config.exit_distance)
+    return _cached_layout(
+        config.lanes_per_approach,
+        config.lane_width,
+        config.corner_radius,
+        config.approach_length,
+        config.exit_distance,
+    )

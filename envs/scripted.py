@@ -21,9 +21,13 @@ class ScriptedPlanner:
     def __init__(self, config: IntersectionConfig) -> None:
         self.config = config
         slow, quick = config.slow_turn_curvature, config.quick_turn_curvature
-        self._turns = {EgoAction.KEEP_DIRECTION: 0.0, EgoAction.SLOWLY_TURN_LEFT: -slow,
-                       EgoAction.SLOWLY_TURN_RIGHT: slow, EgoAction.QUICKLY_TURN_LEFT: -quick,
-                       EgoAction.QUICKLY_TURN_RIGHT: quick}
+        self._turns = {
+            EgoAction.KEEP_DIRECTION: 0.0,
+            EgoAction.SLOWLY_TURN_LEFT: -slow,
+            EgoAction.SLOWLY_TURN_RIGHT: slow,
+            EgoAction.QUICKLY_TURN_LEFT: -quick,
+            EgoAction.QUICKLY_TURN_RIGHT: quick,
+        }
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray | None = None) -> int:
         """The action for one step."""

@@ -41,8 +41,10 @@ class SubgoalSampler:
         for path, s in zip(routes, route_s, strict=True):
             first = math.ceil((s - cfg.subgoal_spacing / 2.0 - self.layout.stop_s) / cfg.subgoal_spacing)
             lattice = self.layout.stop_s + cfg.subgoal_spacing * (first + np.arange(self.per_route))
-            lattice = lattice[(lattice < s - cfg.subgoal_spacing / 2.0 + cfg.subgoal_range)
-                              & (lattice <= paths.lengths[path])]
+            lattice = lattice[
+                (lattice < s - cfg.subgoal_spacing / 2.0 + cfg.subgoal_range)
+                & (lattice <= paths.lengths[path])
+            ]
             poses.append(paths.pose_at(np.full(len(lattice), path), lattice))
         candidates = np.concatenate([*poses, np.empty((0, 3))])[: cfg.num_subgoals]
         if not len(candidates):

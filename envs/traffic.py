@@ -69,8 +69,13 @@ class Obstacle:
 class Traffic:
     """The other vehicles of one episode, in fixed-capacity arrays (inactive slots are ignored)."""
 
-    def __init__(self, layout: IntersectionLayout, config: IntersectionConfig,
-                 rng: np.random.Generator, driver: DriverModel | None = None) -> None:
+    def __init__(
+        self,
+        layout: IntersectionLayout,
+        config: IntersectionConfig,
+        rng: np.random.Generator,
+        driver: DriverModel | None = None,
+    ) -> None:
         self.layout = layout
         self.config = config
         self.rng = rng
@@ -113,8 +118,9 @@ class Traffic:
         return rank.astype(np.int64) * 10**9 + self.order[idx]
 
     # --- spawning ------------------------------------------------------------------------------------
-    def spawn(self, path: int, s: float, ego: Obstacle | None = None,
-              speed: float | None = None) -> int | None:
+    def spawn(
+        self, path: int, s: float, ego: Obstacle | None = None, speed: float | None = None
+    ) -> int | None:
         """Place a vehicle on ``path`` at arc length ``s`` if there is room; return its slot.
 
         The speed is capped so that the vehicle can stop comfortably behind whatever is ahead.
@@ -130,8 +136,14 @@ class Traffic:
         low, high = self.config.npc_speed_range
         self.desired_speed[slot] = self.rng.uniform(low, high)
         self.headway[slot] = self.rng.uniform(*self.config.npc_time_headway)
-        gap, _ = self._gaps(np.array([path]), np.array([s]), np.array([VEHICLE_LENGTH]),
-                            np.array([VEHICLE_WIDTH]), others, np.array([-2]))
+        gap, _ = self._gaps(
+            np.array([path]),
+            np.array([s]),
+            np.array([VEHICLE_LENGTH]),
+            np.array([VEHICLE_WIDTH]),
+            others,
+            np.array([-2]),
+        )
         safe = np.sqrt(2.0 * self.driver.comfort_decel * max(float(gap[0]) - self.driver.min_gap, 0.0))
         start_speed = self.desired_speed[slot] if speed is None else speed
         self.active[slot], self.path[slot], self.s[slot] = True, path, s
@@ -163,8 +175,9 @@ class Traffic:
         idx = self.indices
         if len(idx):
             obstacles = self._obstacle_table(ego)
-            gap, lead_speed = self._gaps(self.path[idx], self.s[idx], self.length[idx],
-                                         self.width[idx], obstacles, idx)
+            gap, lead_speed = self._gaps(
+                self.path[idx], self.s[idx], self.length[idx], self.width[idx], obstacles, idx
+            )
             stop_gap = self._junction_control(idx, ego)
             use_stop = stop_gap < gap
             gap = np.where(use_stop, stop_gap, gap)
@@ -179,8 +192,10 @@ class Traffic:
             self.committed[idx] |= past_line
         self._refresh_poses()
         self.crash_timer[self.crashed] += DT
-        done = self.active & ((self.s >= self.layout.paths.lengths[self.path] - 1.0)
-                              | (self.crash_timer > self.config.crashed_vehicle_lifetime))
+        done = self.active & (
+            (self.s >= self.layout.paths.lengths[self.path] - 1.0)
+            | (self.crash_timer > self.config.crashed_vehicle_lifetime)
+        )
         self.remove(np.flatnonzero(done))
 
     def detect_crashes(self, ego: Obstacle | None = None) -> bool:
@@ -189,7 +204,9 @@ class Traffic:
         if not len(idx):
             return False
         xy = self.pose[idx, :2]
-        near = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]) < VEHICLE_LENGTH + 0.5
+        near = (
+            np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]) < VEHICLE_LENGTH + 0.5
+        )
         i, j = np.nonzero(np.triu(near, 1))
         hit = np.zeros(len(idx), bool)
         if len(i):
@@ -199,8 +216,13 @@ class Traffic:
         if ego is not None:
             close = np.flatnonzero(np.hypot(xy[:, 0] - ego.x, xy[:, 1] - ego.y) < VEHICLE_LENGTH + ego.length)
             if len(close):
-                ego_box = box_corners(np.array(ego.x), np.array(ego.y), np.array(ego.heading),
-                                      np.array(ego.length), np.array(ego.width))
+                ego_box = box_corners(
+                    np.array(ego.x),
+                    np.array(ego.y),
+                    np.array(ego.heading),
+                    np.array(ego.length),
+                    np.array(ego.width),
+                )
                 by_ego = boxes_overlap(self._corners(idx[close]), ego_box[None])
                 hit[close[by_ego]] = True
                 ego_hit = bool(by_ego.any())
@@ -218,15 +240,29 @@ class Traffic:
     def _obstacle_table(self, ego: Obstacle | None) -> tuple[FloatArray, ...]:
         """Columns x, y, heading, speed, length, width, slot (-1 for the ego) of everything on the road."""
         idx = self.indices
-        cols = [self.pose[idx, 0], self.pose[idx, 1], self.pose[idx, 2], self.speed[idx],
-                self.length[idx], self.width[idx], idx.astype(float)]
+        cols = [
+            self.pose[idx, 0],
+            self.pose[idx, 1],
+            self.pose[idx, 2],
+            self.speed[idx],
+            self.length[idx],
+            self.width[idx],
+            idx.astype(float),
+        ]
         if ego is not None:
             extra = [ego.x, ego.y, ego.heading, ego.speed, ego.length, ego.width, -1.0]
             cols = [np.append(c, e) for c, e in zip(cols, extra, strict=True)]
         return tuple(cols)
 
-    def _gaps(self, path: NDArray[np.int64], s: FloatArray, length: FloatArray, width: FloatArray,
-              obstacles: tuple[FloatArray, ...], slots: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+    def _gaps(
+        self,
+        path: NDArray[np.int64],
+        s: FloatArray,
+        length: FloatArray,
+        width: FloatArray,
+        obstacles: tuple[FloatArray, ...],
+        slots: NDArray[np.int64],
+    ) -> tuple[FloatArray, FloatArray]:
         """Bumper gap to, and along-path speed of, the nearest obstacle ahead on each vehicle's path.
 
         When two vehicles each see the other ahead (crossing paths), only the one with lower priority
@@ -262,15 +298,22 @@ class Traffic:
     def _idm(self, idx: NDArray[np.int64], gap: FloatArray, lead_speed: FloatArray) -> FloatArray:
         drv = self.driver
         v = self.speed[idx]
-        sample = np.minimum((self.s[idx] / self.layout.paths.resolution).astype(np.int64),
-                            self.layout.speed_profile.shape[1] - 1)
-        v_des = np.maximum(np.minimum(self.desired_speed[idx],
-                                      self.layout.speed_profile[self.path[idx], sample]), 0.5)
+        sample = np.minimum(
+            (self.s[idx] / self.layout.paths.resolution).astype(np.int64),
+            self.layout.speed_profile.shape[1] - 1,
+        )
+        v_des = np.maximum(
+            np.minimum(self.desired_speed[idx], self.layout.speed_profile[self.path[idx], sample]),
+            0.5,
+        )
         free = drv.max_accel * (1.0 - (v / v_des) ** 4)
         desired_gap = drv.min_gap + np.maximum(
-            v * self.headway[idx] + v * (v - lead_speed) / (2.0 * np.sqrt(drv.max_accel * drv.comfort_decel)), 0.0)
-        interaction = np.where(np.isfinite(gap),
-                               drv.max_accel * (desired_gap / np.maximum(gap, 0.01)) ** 2, 0.0)
+            v * self.headway[idx] + v * (v - lead_speed) / (2.0 * np.sqrt(drv.max_accel * drv.comfort_decel)),
+            0.0,
+        )
+        interaction = np.where(
+            np.isfinite(gap), drv.max_accel * (desired_gap / np.maximum(gap, 0.01)) ** 2, 0.0
+        )
         return np.clip(free - interaction, -drv.max_decel, drv.max_accel)
 
     # --- junction protocol ---------------------------------------------------------------------------
@@ -289,13 +332,18 @@ class Traffic:
         # Priority traffic that would reach the shared zone before this vehicle clears it.
         key_i, key_j = self.priority_key(i), self.priority_key(j)
         j_first = key_j[None, :] < key_i[:, None]
-        j_eta = np.maximum(layout.zone_start[pj, pi] - (self.s[j] + self.length[j] / 2.0)[None, :], 0.0) \
+        j_eta = (
+            np.maximum(layout.zone_start[pj, pi] - (self.s[j] + self.length[j] / 2.0)[None, :], 0.0)
             / np.maximum(self.speed[j], 1.0)[None, :]
+        )
         clear_distance = layout.zone_end[pi, pj] + self.length[i][:, None] / 2.0 - self.s[i][:, None]
         v = self.speed[i][:, None]
-        clear_time = (np.sqrt(v**2 + 2.0 * drv.max_accel * np.maximum(clear_distance, 0.0)) - v) / drv.max_accel
-        by_priority = conflict & ~self.committed[j][None, :] & j_first & j_inside \
-            & (j_eta < clear_time + drv.gap_time)
+        clear_time = (
+            np.sqrt(v**2 + 2.0 * drv.max_accel * np.maximum(clear_distance, 0.0)) - v
+        ) / drv.max_accel
+        by_priority = (
+            conflict & ~self.committed[j][None, :] & j_first & j_inside & (j_eta < clear_time + drv.gap_time)
+        )
         blocked = (by_committed | by_priority).any(axis=1)
         if ego is not None:
             blocked |= self._ego_in_junction_path(i, ego)
@@ -307,7 +355,11 @@ class Traffic:
             return np.zeros(len(i), bool)
         s, d = layout.paths.project(self.path[i], np.array([ego.x, ego.y]))
         reach = VEHICLE_WIDTH / 2.0 + ego.length / 2.0 + self.driver.lateral_margin
-        return (np.abs(d) < reach) & (s > layout.stop_s - ego.length) & (s < layout.junction_end_s[self.path[i]] + ego.length)
+        return (
+            (np.abs(d) < reach)
+            & (s > layout.stop_s - ego.length)
+            & (s < layout.junction_end_s[self.path[i]] + ego.length)
+        )
 
     def _junction_control(self, idx: NDArray[np.int64], ego: Obstacle | None) -> FloatArray:
         """Commit waiting vehicles that may enter; return the gap to the stop line of the others.
@@ -324,7 +376,7 @@ class Traffic:
         blocked = self._blocked(waiting, ego)
         v = self.speed[waiting]
         distance = self._distance_to_stop(waiting)
-        commit_distance = drv.min_gap + v * self.headway[waiting] + v**2 / (2.0 * drv.comfort_decel) + v * DT
+        commit_distance = drv.min_gap + v**2 / (2.0 * drv.comfort_decel) + v * DT
         ready = np.flatnonzero(~blocked & (distance <= commit_distance + drv.stop_margin))
         entered: list[int] = []
         for k in ready[np.argsort(self.priority_key(waiting[ready]))]:

@@ -103,14 +103,21 @@ class IntersectionWorld:
         for k in range(1, self._hist_len):
             row = -k % self._hist_len
             back = ego.speed * k * DT
-            self._hist[row, self.ego_slot] = (ego.x - back * np.cos(ego.heading),
-                                              ego.y - back * np.sin(ego.heading), ego.heading, ego.speed)
+            self._hist[row, self.ego_slot] = (
+                ego.x - back * np.cos(ego.heading),
+                ego.y - back * np.sin(ego.heading),
+                ego.heading,
+                ego.speed,
+            )
             self._hist_uid[row, self.ego_slot] = 0
 
     def _place_ego(self) -> None:
         cfg, layout, rng = self.config, self.layout, self.rng
-        lanes = range(layout.lanes) if cfg.ego_lane == "random" else \
-            sorted({layout.movements[p].lane for p in self._task_paths})
+        lanes = (
+            range(layout.lanes)
+            if cfg.ego_lane == "random"
+            else sorted({layout.movements[p].lane for p in self._task_paths})
+        )
         lane = int(rng.choice(list(lanes)))
         path = layout.paths_from(EGO_ARM, lane=lane)[0]
         s = layout.stop_s - rng.uniform(*cfg.ego_start_distance)
@@ -123,8 +130,7 @@ class IntersectionWorld:
         ahead_s, ahead_d = layout.paths.lookup(np.full(len(idx), path), traffic.pose[idx, :2])
         ahead = (np.abs(ahead_d) < VEHICLE_WIDTH + 0.5) & (ahead_s > s)
         gap = float(np.min(ahead_s[ahead] - s, initial=np.inf)) - VEHICLE_LENGTH
-        speed = min(rng.uniform(*cfg.ego_start_speed),
-                    np.sqrt(2.0 * cfg.deceleration * max(gap - 4.0, 0.0)))
+        speed = min(rng.uniform(*cfg.ego_start_speed), np.sqrt(2.0 * cfg.deceleration * max(gap - 4.0, 0.0)))
         self.ego = EgoState(float(x), float(y), float(heading), float(speed))
 
     def _spawn_traffic(self, ego: Obstacle | None) -> None:
@@ -143,8 +149,12 @@ class IntersectionWorld:
         self._record()
         exit_arm = self.layout.exit_reached(np.array([self.ego.x, self.ego.y]))
         success = exit_arm == TURN_OFFSET[self.task]
-        return StepOutcome(crashed=crashed, offroad=not self.ego_on_road(self.ego),
-                           success=success, wrong_exit=exit_arm is not None and not success)
+        return StepOutcome(
+            crashed=crashed,
+            offroad=not self.ego_on_road(self.ego),
+            success=success,
+            wrong_exit=exit_arm is not None and not success,
+        )
 
     @property
     def time(self) -> float:
@@ -158,14 +168,20 @@ class IntersectionWorld:
 
     def ego_on_road(self, ego: EgoState) -> bool:
         """Whether all four corners of the ego's box are on the drivable area."""
-        corners = box_corners(np.array(ego.x), np.array(ego.y), np.array(ego.heading),
-                              np.array(VEHICLE_LENGTH), np.array(VEHICLE_WIDTH))
+        corners = box_corners(
+            np.array(ego.x),
+            np.array(ego.y),
+            np.array(ego.heading),
+            np.array(VEHICLE_LENGTH),
+            np.array(VEHICLE_WIDTH),
+        )
         return bool(self.layout.is_drivable(corners[:, 0], corners[:, 1]).all())
 
     def action_mask(self) -> NDArray[np.bool_]:
         """Actions that keep the ego on the road for the next step; all of them if none does."""
-        mask = np.array([self.ego_on_road(self.motion.step(self.ego, a))
-                         for a in range(len(self.motion.curvature))])
+        mask = np.array(
+            [self.ego_on_road(self.motion.step(self.ego, a)) for a in range(len(self.motion.curvature))]
+        )
         return mask if mask.any() else np.ones_like(mask)
 
     def ego_routes(self) -> tuple[list[int], FloatArray]:
@@ -215,8 +231,9 @@ class IntersectionWorld:
         uids = np.where(slots == self.ego_slot, 0, self.traffic.uid[np.minimum(slots, self.ego_slot - 1)])
         return uids.astype(np.int64)
 
-    def poses_between(self, first: int, last: int, slots: NDArray[np.int64],
-                      uids: NDArray[np.int64]) -> tuple[FloatArray, NDArray[np.bool_]]:
+    def poses_between(
+        self, first: int, last: int, slots: NDArray[np.int64], uids: NDArray[np.int64]
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
         """World poses (x, y, heading, speed) of slots at steps first..last, and where they are valid.
 
         A pose is valid if it was recorded for the same vehicle (slots are reused) and is still in
@@ -225,17 +242,25 @@ class IntersectionWorld:
         steps = np.arange(first, last + 1)
         rows = steps % self._hist_len
         poses = self._hist[rows][:, slots]
-        valid = (self._hist_uid[rows][:, slots] == uids[None]) \
-            & (steps <= self.steps)[:, None] & (steps > self.steps - self._hist_len)[:, None]
+        valid = (
+            (self._hist_uid[rows][:, slots] == uids[None])
+            & (steps <= self.steps)[:, None]
+            & (steps > self.steps - self._hist_len)[:, None]
+        )
         return poses, valid
 
     def begin_decision(self) -> DecisionRecord:
         """Remember the ego and the neighbours of the state now, for :meth:`decision_future`."""
         slots = np.concatenate([[self.ego_slot], self.neighbours()]).astype(np.int64)
-        return DecisionRecord(self.steps, slots, self.slot_uids(slots),
-                              np.array([self.ego.x, self.ego.y]), self.ego.heading)
+        return DecisionRecord(
+            self.steps,
+            slots,
+            self.slot_uids(slots),
+            np.array([self.ego.x, self.ego.y]),
+            self.ego.heading,
+        )
 
-    def decision_future(self, record: DecisionRecord) -> tuple[FloatArray, NDArray[np.bool_]]:
+    def decision_future(self, record: DecisionRecord) -> tuple[np.ndarray, np.ndarray]:
         """Ground-truth next T_f poses (x, y, heading) in the decision's ego frame, with presence flags.
 
         Rows follow the state's vehicle order (ego first) padded to N_s + 1; steps not simulated yet
