@@ -209,14 +209,17 @@ class PathSet:
         """
         n = int(np.ceil(2 * extent / cell))
         centres = (np.arange(n) + 0.5) * cell - extent
-        grid = np.stack(np.meshgrid(centres, centres, indexing="ij"), -1).reshape(-1, 2)
-        self._lookup_s = np.empty((len(self), n, n), np.float32)
-        self._lookup_d = np.empty((len(self), n, n), np.float32)
+        self._lookup_s = np.zeros((len(self), n, n), np.float32)
+        self._lookup_d = np.full((len(self), n, n), np.inf, np.float32)
         for p in range(len(self)):
-            s, d = self.project(np.array(p), grid)
-            d = np.where(np.abs(d) <= band, d, np.inf)
-            self._lookup_s[p] = s.reshape(n, n)
-            self._lookup_d[p] = d.reshape(n, n)
+            # Only cells in the path's bounding box grown by the band can be near it.
+            xy = self.samples[p, :, :2]
+            lo = np.searchsorted(centres, xy.min(0) - band)
+            hi = np.searchsorted(centres, xy.max(0) + band)
+            gx, gy = np.meshgrid(centres[lo[0] : hi[0]], centres[lo[1] : hi[1]], indexing="ij")
+            s, d = self.project(np.array(p), np.stack((gx, gy), -1))
+            self._lookup_s[p, lo[0] : hi[0], lo[1] : hi[1]] = s
+            self._lookup_d[p, lo[0] : hi[0], lo[1] : hi[1]] = np.where(np.abs(d) <= band, d, np.inf)
         self._lookup_extent, self._lookup_cell, self._lookup_n = extent, cell, n
 
     def lookup(self, path: NDArray[np.int64], points: FloatArray) -> tuple[FloatArray, FloatArray]:
