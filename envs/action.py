@@ -79,6 +79,14 @@ class EgoMotion:
             new_speed,
         )
 
+    def all_next_poses(self, state: EgoState) -> FloatArray:
+        """World poses (x, y, heading) after one step of each action, (N_a, 3)."""
+        poses = np.empty((len(self.curvature), 3))
+        for action in range(len(self.curvature)):
+            nxt = self.step(state, action)
+            poses[action] = (nxt.x, nxt.y, nxt.heading)
+        return poses
+
     def step(self, state: EgoState, action: int) -> EgoState:
         """The ego state after one step of ``action``."""
         (dx, dy, dheading), speed = self.pose_change(state.speed, action)

@@ -52,6 +52,9 @@ def poses_to_frame(poses: FloatArray, origin: FloatArray, heading: float) -> Flo
     return out
 
 
+_CORNER_SIGNS = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
+
+
 def box_corners(
     x: FloatArray, y: FloatArray, heading: FloatArray, length: FloatArray, width: FloatArray
 ) -> FloatArray:
@@ -59,13 +62,11 @@ def box_corners(
 
     :return: corners in counter-clockwise order on the math plane
     """
-    c, s = np.cos(heading), np.sin(heading)
-    hl, hw = np.asarray(length) / 2.0, np.asarray(width) / 2.0
-    signs = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
-    lon = signs[:, 0] * np.expand_dims(hl, -1)
-    lat = signs[:, 1] * np.expand_dims(hw, -1)
-    cx = np.expand_dims(x, -1) + lon * np.expand_dims(c, -1) - lat * np.expand_dims(s, -1)
-    cy = np.expand_dims(y, -1) + lon * np.expand_dims(s, -1) + lat * np.expand_dims(c, -1)
+    c, s = np.cos(heading)[..., None], np.sin(heading)[..., None]
+    lon = _CORNER_SIGNS[:, 0] * (np.asarray(length) / 2.0)[..., None]
+    lat = _CORNER_SIGNS[:, 1] * (np.asarray(width) / 2.0)[..., None]
+    cx = np.asarray(x)[..., None] + lon * c - lat * s
+    cy = np.asarray(y)[..., None] + lon * s + lat * c
     return np.stack((cx, cy), axis=-1)
 
 

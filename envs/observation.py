@@ -56,6 +56,10 @@ class SceneObserver:
         # Row 0 is the farthest ahead, columns run from the ego's left to its right.
         self._bev_forward = -centres[:, None] * np.ones((1, cfg.bev_size))
         self._bev_right = np.ones((cfg.bev_size, 1)) * centres[None, :]
+        vehicle, route = np.meshgrid(
+            np.arange(cfg.num_neighbours + 1), np.arange(cfg.num_routes), indexing="ij"
+        )
+        self._route_ids = np.repeat(np.stack((vehicle, route), -1)[:, :, None], cfg.route_points, axis=2)
         layout = world.layout
         self._entry_routes = np.full((4 * layout.lanes, cfg.num_routes), -1, np.int64)
         for entry in range(4 * layout.lanes):
@@ -136,15 +140,13 @@ class SceneObserver:
         safe = np.maximum(paths, 0)[..., None]
         world_poses = layout.paths.pose_at(np.broadcast_to(safe, s.shape), s)
         local = self.to_ego(world_poses)
-        ids = np.broadcast_to(
-            np.stack(np.meshgrid(np.arange(n), np.arange(cfg.num_routes), indexing="ij"), -1)[:, :, None, :],
-            (n, cfg.num_routes, points, 2),
-        )
-        vec = np.concatenate([local[:, :, :-1], local[:, :, 1:], ids.astype(np.float32)], -1)
         ok = (paths[..., None] >= 0) & (s[..., 1:] <= layout.paths.lengths[safe])
         routes = np.zeros((cfg.num_neighbours + 1, cfg.num_routes, points, ROUTE_FEATURES), np.float32)
+        routes[:n, ..., 0:3] = local[:, :, :-1]
+        routes[:n, ..., 3:6] = local[:, :, 1:]
+        routes[:n, ..., 6:8] = self._route_ids[:n]
+        routes[:n] *= ok[..., None]
         mask = np.zeros((cfg.num_neighbours + 1, cfg.num_routes, points), np.float32)
-        routes[:n] = np.where(ok[..., None], vec, 0.0)
         mask[:n] = ok
         return routes, mask
 

@@ -63,6 +63,7 @@ class IntersectionWorld:
         self.task_goal = np.zeros(3)
         self._task_paths: list[int] = []
         self._candidates: FloatArray | None = None
+        self._routes: tuple[list[int], FloatArray] | None = None
 
     # --- episode -------------------------------------------------------------------------------------
     def reset(self, rng: np.random.Generator, task: str | None = None) -> None:
@@ -95,7 +96,7 @@ class IntersectionWorld:
         self._place_ego()
         self._record()
         self._backfill_ego_history()
-        self._candidates = None
+        self._candidates = self._routes = None
 
     def _backfill_ego_history(self) -> None:
         """Give the new ego a past: it arrived at constant speed along its heading."""
@@ -145,7 +146,7 @@ class IntersectionWorld:
         crashed = self.traffic.detect_crashes(ego)
         self._spawn_traffic(ego)
         self.steps += 1
-        self._candidates = None
+        self._candidates = self._routes = None
         self._record()
         exit_arm = self.layout.exit_reached(np.array([self.ego.x, self.ego.y]))
         success = exit_arm == TURN_OFFSET[self.task]
@@ -168,23 +169,24 @@ class IntersectionWorld:
 
     def ego_on_road(self, ego: EgoState) -> bool:
         """Whether all four corners of the ego's box are on the drivable area."""
-        corners = box_corners(
-            np.array(ego.x),
-            np.array(ego.y),
-            np.array(ego.heading),
-            np.array(VEHICLE_LENGTH),
-            np.array(VEHICLE_WIDTH),
-        )
-        return bool(self.layout.is_drivable(corners[:, 0], corners[:, 1]).all())
+        return bool(self._on_road(np.array([[ego.x, ego.y, ego.heading]]))[0])
+
+    def _on_road(self, poses: FloatArray) -> NDArray[np.bool_]:
+        corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], VEHICLE_LENGTH, VEHICLE_WIDTH)
+        return self.layout.is_drivable(corners[..., 0], corners[..., 1]).all(-1)
 
     def action_mask(self) -> NDArray[np.bool_]:
         """Actions that keep the ego on the road for the next step; all of them if none does."""
-        mask = np.array(
-            [self.ego_on_road(self.motion.step(self.ego, a)) for a in range(len(self.motion.curvature))]
-        )
+        mask = self._on_road(self.motion.all_next_poses(self.ego))
         return mask if mask.any() else np.ones_like(mask)
 
     def ego_routes(self) -> tuple[list[int], FloatArray]:
+        """The ego's routes towards its task goal (see :meth:`_find_routes`), cached per step."""
+        if self._routes is None:
+            self._routes = self._find_routes()
+        return self._routes
+
+    def _find_routes(self) -> tuple[list[int], FloatArray]:
         """The ego's routes towards its task goal, nearest first, and its arc length on each.
 
         Before the stop line every path of the task is a route (a lane change may lead to it);
