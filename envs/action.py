@@ -73,11 +73,11 @@ class EgoMotion:
         new_speed = self.next_speed(speed, int(action))
         distance = 0.5 * (speed + new_speed) * DT
         dheading = float(self.curvature[int(action)] * distance)
-        # The chord of an arc of turn dheading points half-way through the turn.
-        return (
-            np.array([distance * np.cos(dheading / 2.0), distance * np.sin(dheading / 2.0), dheading]),
-            new_speed,
-        )
+        # The chord of an arc of turn dheading is shorter than the arc by sinc(dheading / 2) and points
+        # half-way through the turn.
+        chord = distance * np.sinc(dheading / (2.0 * np.pi))
+        change = np.array([chord * np.cos(dheading / 2.0), chord * np.sin(dheading / 2.0), dheading])
+        return change, new_speed
 
     def all_next_poses(self, state: EgoState) -> FloatArray:
         """World poses (x, y, heading) after one step of each action, (N_a, 3)."""

@@ -167,7 +167,7 @@ class IntersectionConfig:
         :param changes: new field values
         :return: the new config
         """
-        return dataclasses.replace(self, **changes)
+        return type(self).from_dict({**dataclasses.asdict(self), **changes})
 
     @property
     def road_half_width(self) -> float:

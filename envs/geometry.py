@@ -56,7 +56,11 @@ _CORNER_SIGNS = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
 
 
 def box_corners(
-    x: FloatArray, y: FloatArray, heading: FloatArray, length: FloatArray, width: FloatArray
+    x: FloatArray | float,
+    y: FloatArray | float,
+    heading: FloatArray | float,
+    length: FloatArray | float,
+    width: FloatArray | float,
 ) -> FloatArray:
     """Corners (..., 4, 2) of oriented boxes centred at (x, y).
 
@@ -190,7 +194,8 @@ class PathSet:
         for k, seg in enumerate(path):
             last = k == len(path) - 1
             sel = (s >= offsets[k]) & ((s < offsets[k + 1]) | last)
-            local = np.minimum(s[sel] - offsets[k], seg.length) if last else s[sel] - offsets[k]
+            # The last segment is sampled on past the path's end so interpolation stays exact there.
+            local = s[sel] - offsets[k]
             x, y, h = seg.pose(local)
             self.samples[p, sel] = np.stack((x, y, h), -1)
             self.curvature[p, sel] = 0.0 if seg.radius == 0.0 else 1.0 / seg.radius

@@ -41,7 +41,7 @@ class ScriptedPlanner:
             target_speed = 0.0
         curvature = 2.0 * y / max(distance**2, 1e-6)
         ranked = sorted(self._turns, key=lambda a: abs(self._turns[a] - curvature))
-        if speed > target_speed + 0.2 or (target_speed == 0.0 and speed > 0.0):
+        if target_speed == 0.0 or speed > target_speed + 0.2:
             ranked = [EgoAction.SLOW_DOWN, *ranked]
         elif ranked[0] != EgoAction.KEEP_DIRECTION and speed < 1.0 and target_speed > 0.0:
             ranked = [EgoAction.KEEP_DIRECTION, *ranked]  # turning needs speed

@@ -54,7 +54,8 @@ class IntersectionWorld:
         self.sampler = SubgoalSampler(self.layout, config)
         self.ego_slot = config.max_vehicles
         """Slot of the ego in the pose history (after the traffic's slots)."""
-        self._hist_len = config.history_length + config.prediction_horizon + 2
+        # Long enough for the state's T_h + 1 poses and for a decision's future, read T_m steps later.
+        self._hist_len = max(config.history_length + 1, config.decision_period) + 1
         self.rng = np.random.default_rng()
         self.traffic = Traffic(self.layout, config, self.rng)
         self.task = "straight"
@@ -173,7 +174,7 @@ class IntersectionWorld:
 
     def _on_road(self, poses: FloatArray) -> NDArray[np.bool_]:
         corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], VEHICLE_LENGTH, VEHICLE_WIDTH)
-        return self.layout.is_drivable(corners[..., 0], corners[..., 1]).all(-1)
+        return np.all(self.layout.is_drivable(corners[..., 0], corners[..., 1]), axis=-1)
 
     def action_mask(self) -> NDArray[np.bool_]:
         """Actions that keep the ego on the road for the next step; all of them if none does."""

@@ -1,0 +1,62 @@
+"""Shared fixtures: an empty-road world with a hand-placed ego, the cached layout, hypothesis settings."""
+
+from __future__ import annotations
+
+import os
+
+# Offscreen pygame without audio (ALSA probing costs seconds on machines without a sound card).
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+from helpers import EMPTY
+from hypothesis import HealthCheck, Phase, settings
+
+import gccp_envs  # noqa: F401  (registers the environments)
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.scenario import IntersectionLayout, layout_for
+from gccp_envs.world import IntersectionWorld
+
+_PHASES = [Phase.explicit, Phase.reuse, Phase.generate, Phase.shrink]  # no slow "explain" phase
+settings.register_profile(
+    "gccp",
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    phases=_PHASES,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+# A longer random search: HYPOTHESIS_PROFILE=thorough python -m pytest -q
+settings.register_profile(
+    "thorough",
+    max_examples=1000,
+    deadline=None,
+    database=None,
+    phases=_PHASES,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "gccp"))
+
+
+@pytest.fixture
+def make_world() -> Callable[..., IntersectionWorld]:
+    """Factory of reset worlds: ``make_world(task="left", seed=0, **config_overrides)``."""
+
+    def make(task: str = "straight", seed: int = 0, **overrides: Any) -> IntersectionWorld:
+        world = IntersectionWorld(EMPTY.replace(**overrides) if overrides else EMPTY)
+        world.reset(np.random.default_rng(seed), task)
+        return world
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def layout() -> IntersectionLayout:
+    """The default two-lane junction (built once per process)."""
+    return layout_for(IntersectionConfig())

@@ -1,0 +1,46 @@
+"""Helpers shared by the tests: an empty-road config and hand placement of the ego."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gccp_envs.action import EgoState
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.scenario import IntersectionLayout
+from gccp_envs.world import IntersectionWorld
+
+EMPTY = IntersectionConfig(spawn_probability=0.0, task="straight")
+"""The default world without any traffic."""
+
+
+def path_pose(layout: IntersectionLayout, path: int, s: float) -> np.ndarray:
+    """(x, y, heading) of arc length ``s`` on ``path``."""
+    return layout.paths.pose_at(np.array(path), np.array(float(s)))
+
+
+def forget_ego_caches(world: IntersectionWorld) -> None:
+    """Drop what the world cached about the ego for the current step (it was moved by hand)."""
+    for cache in ("_candidates", "_routes"):
+        if hasattr(world, cache):
+            setattr(world, cache, None)
+
+
+def place_ego(world: IntersectionWorld, x: float, y: float, heading: float, speed: float) -> None:
+    """Put the ego at a pose, as if it had driven there straight at constant speed."""
+    world.ego = EgoState(float(x), float(y), float(heading), float(speed))
+    forget_ego_caches(world)
+    world._record()
+    world._backfill_ego_history()
+
+
+def place_ego_on_path(world: IntersectionWorld, path: int, s: float, speed: float) -> np.ndarray:
+    """Put the ego on ``path`` at arc length ``s``; return its pose."""
+    pose = path_pose(world.layout, path, s)
+    place_ego(world, pose[0], pose[1], pose[2], speed)
+    return pose
+
+
+def ego_frame(points: np.ndarray, x: float, y: float, heading: float) -> np.ndarray:
+    """World points (..., 2) in the frame of a pose, computed independently of the package."""
+    rot = np.array([[np.cos(heading), np.sin(heading)], [-np.sin(heading), np.cos(heading)]])
+    return (np.asarray(points, float) - np.array([x, y])) @ rot.T

@@ -1,0 +1,145 @@
+"""The six ego actions: speed changes, turn directions and the exact pose change of one 0.1 s step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gccp_envs.action import EgoAction, EgoMotion, EgoState
+from gccp_envs.config import IntersectionConfig
+
+CFG = IntersectionConfig()
+MOTION = EgoMotion(CFG)
+TURNS = (
+    EgoAction.SLOWLY_TURN_LEFT,
+    EgoAction.SLOWLY_TURN_RIGHT,
+    EgoAction.QUICKLY_TURN_LEFT,
+    EgoAction.QUICKLY_TURN_RIGHT,
+)
+
+
+def test_six_actions_in_the_papers_order():
+    assert [a.name for a in EgoAction] == [
+        "SLOW_DOWN",
+        "KEEP_DIRECTION",
+        "SLOWLY_TURN_LEFT",
+        "SLOWLY_TURN_RIGHT",
+        "QUICKLY_TURN_LEFT",
+        "QUICKLY_TURN_RIGHT",
+    ]
+    assert len(MOTION.curvature) == 6
+
+
+def test_slow_down_reduces_speed_by_deceleration_times_dt():
+    (dx, dy, dh), speed = MOTION.pose_change(8.0, EgoAction.SLOW_DOWN)
+    assert speed == pytest.approx(8.0 - CFG.deceleration * 0.1)
+    assert dx == pytest.approx(0.5 * (8.0 + speed) * 0.1)
+    assert dy == 0.0 and dh == 0.0
+    assert MOTION.pose_change(0.1, EgoAction.SLOW_DOWN)[1] == 0.0  # never negative
+
+
+def test_keep_direction_accelerates_to_cruise_speed():
+    assert MOTION.next_speed(5.0, EgoAction.KEEP_DIRECTION) == pytest.approx(5.0 + CFG.acceleration * 0.1)
+    assert MOTION.next_speed(7.9, EgoAction.KEEP_DIRECTION) == CFG.cruise_speed  # capped
+    assert MOTION.next_speed(CFG.cruise_speed, EgoAction.KEEP_DIRECTION) == CFG.cruise_speed
+    # Above cruise speed it brakes back towards it, at most at the deceleration.
+    assert MOTION.next_speed(10.0, EgoAction.KEEP_DIRECTION) == pytest.approx(10.0 - CFG.deceleration * 0.1)
+    assert MOTION.next_speed(8.1, EgoAction.KEEP_DIRECTION) == CFG.cruise_speed
+
+
+@pytest.mark.parametrize("action", TURNS)
+def test_turns_hold_speed(action):
+    assert MOTION.next_speed(6.5, action) == 6.5
+
+
+@pytest.mark.parametrize(
+    ("slow", "quick", "sign"),
+    [
+        (EgoAction.SLOWLY_TURN_LEFT, EgoAction.QUICKLY_TURN_LEFT, -1.0),
+        (EgoAction.SLOWLY_TURN_RIGHT, EgoAction.QUICKLY_TURN_RIGHT, 1.0),
+    ],
+)
+def test_turn_directions_and_rates(slow, quick, sign):
+    """Left turns: dheading < 0 and dy < 0 in the ego frame (to the left on screen); right: both > 0."""
+    (dx_s, dy_s, dh_s), _ = MOTION.pose_change(6.0, slow)
+    (dx_q, dy_q, dh_q), _ = MOTION.pose_change(6.0, quick)
+    assert np.sign(dh_s) == np.sign(dy_s) == np.sign(dh_q) == np.sign(dy_q) == sign
+    assert dx_s > 0 and dx_q > 0
+    assert abs(dh_q) > abs(dh_s)
+    assert abs(dy_q) > abs(dy_s)
+    distance = 0.6
+    assert abs(dh_s) == pytest.approx(CFG.slow_turn_curvature * distance)
+    assert abs(dh_q) == pytest.approx(CFG.quick_turn_curvature * distance)
+
+
+def test_left_turn_decreases_world_heading():
+    state = EgoState(0.0, 0.0, 0.0, 8.0)  # facing east
+    after = MOTION.step(state, EgoAction.QUICKLY_TURN_LEFT)
+    assert after.heading < 0.0
+    assert after.y < 0.0  # towards the top of the screen: the left of an east-bound car
+    after = MOTION.step(state, EgoAction.QUICKLY_TURN_RIGHT)
+    assert after.heading > 0.0 and after.y > 0.0
+
+
+@given(st.floats(0.0, 12.0), st.sampled_from(list(EgoAction)))
+def test_pose_change_stays_on_the_arc(speed, action):
+    """The chord points half-way through the turn and has at most the arc length."""
+    (dx, dy, dh), new_speed = MOTION.pose_change(speed, action)
+    arc = 0.5 * (speed + new_speed) * 0.1
+    assert dh == pytest.approx(MOTION.curvature[action] * arc)
+    chord = np.hypot(dx, dy)
+    assert chord <= arc + 1e-12
+    if chord > 0:
+        assert np.arctan2(dy, dx) == pytest.approx(dh / 2.0)
+
+
+@pytest.mark.parametrize("action", TURNS)
+def test_pose_change_is_the_exact_arc_chord(action):
+    (dx, dy, dh), speed = MOTION.pose_change(8.0, action)
+    curvature = MOTION.curvature[action]
+    arc = 0.5 * (8.0 + speed) * 0.1
+    assert dh == pytest.approx(curvature * arc, abs=1e-12)
+    # A circle of radius 1/curvature, tangent to the ego's x axis at the origin.
+    assert dx == pytest.approx(np.sin(dh) / curvature, abs=1e-9)
+    assert dy == pytest.approx((1.0 - np.cos(dh)) / curvature, abs=1e-9)
+
+
+def test_step_rotates_the_pose_change_into_the_world():
+    state = EgoState(10.0, 20.0, -np.pi / 2, 8.0)  # facing north (up on screen)
+    (dx, dy, dh), speed = MOTION.pose_change(8.0, EgoAction.SLOWLY_TURN_RIGHT)
+    after = MOTION.step(state, EgoAction.SLOWLY_TURN_RIGHT)
+    # Forward is -y, the right on screen is +x.
+    assert after.x == pytest.approx(10.0 + dy)
+    assert after.y == pytest.approx(20.0 - dx)
+    assert after.heading == pytest.approx(-np.pi / 2 + dh)
+    assert after.speed == speed
+    # Headings stay wrapped.
+    assert (
+        -np.pi <= MOTION.step(EgoState(0, 0, np.pi - 1e-3, 8.0), EgoAction.QUICKLY_TURN_RIGHT).heading < np.pi
+    )
+
+
+def test_stop_and_go():
+    state = EgoState(0.0, 50.0, -np.pi / 2, CFG.cruise_speed)
+    for _ in range(int(CFG.cruise_speed / (CFG.deceleration * 0.1)) + 1):
+        state = MOTION.step(state, EgoAction.SLOW_DOWN)
+    assert state.speed == 0.0
+    stopped = state.as_array()
+    for action in (EgoAction.SLOW_DOWN, EgoAction.QUICKLY_TURN_LEFT, EgoAction.SLOWLY_TURN_RIGHT):
+        state = MOTION.step(state, action)  # no creeping, no turning on the spot
+        np.testing.assert_array_equal(state.as_array(), stopped)
+    speeds = []
+    for _ in range(int(CFG.cruise_speed / (CFG.acceleration * 0.1)) + 2):
+        state = MOTION.step(state, EgoAction.KEEP_DIRECTION)
+        speeds.append(state.speed)
+    assert np.all(np.diff(speeds) >= 0)
+    assert state.speed == CFG.cruise_speed
+    assert state.y < stopped[1] and state.x == pytest.approx(stopped[0])
+
+
+@pytest.mark.parametrize("action", [-1, 6, 100])
+def test_invalid_action(action):
+    with pytest.raises(ValueError, match="invalid ego action"):
+        MOTION.pose_change(5.0, action)

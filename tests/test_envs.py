@@ -1,0 +1,244 @@
+"""The three registered envs: API checkers, seeding, bad input, episode ends and info."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from helpers import place_ego
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+from gccp_envs import ENV_IDS
+from gccp_envs.action import EgoAction
+from gccp_envs.config import IntersectionConfig
+
+ALL_ENVS = sorted(ENV_IDS)
+GOAL_KEY = {"GCCPPlanner-v0": "goal", "GCCPFlat-v0": "goal", "GCCPDecider-v0": "subgoals"}
+
+
+def make(env_id, **kwargs):
+    return gym.make(env_id, **kwargs).unwrapped
+
+
+def test_importing_sb3_gccp_registers_the_envs():
+    code = (
+        "import sb3_gccp, gymnasium as gym\n"
+        "for env_id in ('GCCPPlanner-v0', 'GCCPDecider-v0', 'GCCPFlat-v0'):\n"
+        "    gym.make(env_id)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_gymnasium_env_checker(env_id):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gym_check_env(make(env_id), skip_render_check=True)
+    messages = [str(w.message) for w in caught if not issubclass(w.category, DeprecationWarning)]
+    assert messages == []
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_sb3_env_checker(env_id):
+    with warnings.catch_warnings():
+        # Advice about image-like observation spaces: the policies use custom feature extractors.
+        warnings.simplefilter("ignore", UserWarning)
+        sb3_check_env(make(env_id), warn=True)
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_observation_and_action_spaces(env_id):
+    env = make(env_id, spawn_probability=0.1)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    assert info["task"] in ("left", "straight", "right")
+    n = 12 if env_id == "GCCPDecider-v0" else 6
+    assert env.action_space == gym.spaces.Discrete(n)
+    assert obs[GOAL_KEY[env_id]].shape == ((12, 3) if env_id == "GCCPDecider-v0" else (3,))
+    mask = env.action_masks()
+    assert mask.shape == (n,) and mask.dtype == bool and mask.any()
+    obs, reward, terminated, truncated, info = env.step(int(np.flatnonzero(mask)[0]))
+    assert env.observation_space.contains(obs)
+    assert isinstance(reward, float)
+    assert isinstance(terminated, bool) and isinstance(truncated, bool)
+    assert reward == pytest.approx(sum(info["reward_terms"].values()))
+
+
+def rollout(env, seed, actions):
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    rewards = []
+    for action in actions:
+        obs, reward, terminated, truncated, _ = env.step(action)
+        out.append(obs)
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    return out, rewards
+
+
+def assert_same(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        assert x.keys() == y.keys()
+        for key in x:
+            np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "actions"),
+    [
+        ("GCCPPlanner-v0", [1, 1, 0, 2, 3, 1, 1, 0, 1, 1, 4, 5] * 2),
+        ("GCCPFlat-v0", [1, 0, 1, 2, 3, 1] * 3),
+        ("GCCPDecider-v0", [3, 2, 7]),
+    ],
+)
+def test_seeding_is_reproducible(env_id, actions):
+    kwargs = {"spawn_probability": 0.2}
+    obs_a, rew_a = rollout(make(env_id, **kwargs), 7, actions)
+    obs_b, rew_b = rollout(make(env_id, **kwargs), 7, actions)
+    assert_same(obs_a, obs_b)
+    assert rew_a == rew_b
+    obs_c, rew_c = rollout(make(env_id, **kwargs), 8, actions)
+    assert not np.array_equal(obs_a[0]["history"], obs_c[0]["history"])
+    assert rew_a != rew_c
+
+
+def test_reset_with_the_same_seed_restarts_the_same_episode():
+    env = make("GCCPPlanner-v0", spawn_probability=0.2)
+    first, _ = rollout(env, 3, [1, 1, 1])
+    rollout(env, 4, [0, 0])
+    again, _ = rollout(env, 3, [1, 1, 1])
+    assert_same(first, again)
+    # Without a seed the next episode continues the generator: a different episode.
+    obs, _ = env.reset()
+    assert not np.array_equal(obs["history"], first[0]["history"])
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_unknown_task(env_id):
+    with pytest.raises(ValueError, match="unknown task 'diagonal'"):
+        gym.make(env_id, task="diagonal")
+    env = make(env_id)
+    with pytest.raises(ValueError, match="unknown task 'diagonal'"):
+        env.reset(seed=0, options={"task": "diagonal"})
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+def test_unknown_config_key(env_id):
+    with pytest.raises(ValueError, match=r"spawn_probabilty.*did you mean 'spawn_probability'"):
+        gym.make(env_id, spawn_probabilty=0.1)
+    with pytest.raises(ValueError, match=r"spawn_probabilty.*did you mean 'spawn_probability'"):
+        gym.make(env_id, config={"spawn_probabilty": 0.1})
+
+
+def test_unknown_config_key_with_a_config_object():
+    with pytest.raises(ValueError, match="did you mean 'spawn_probability'"):
+        gym.make("GCCPPlanner-v0", config=IntersectionConfig(), spawn_probabilty=0.1)
+
+
+def test_config_object_and_mapping():
+    env = make("GCCPPlanner-v0", config=IntersectionConfig(task="left"), spawn_probability=0.0)
+    assert env.config.task == "left" and env.config.spawn_probability == 0.0
+    env = make("GCCPFlat-v0", config={"task": "right", "ego_start_speed": [2.0, 3.0]})
+    assert env.config.ego_start_speed == (2.0, 3.0)
+    _, info = env.reset(seed=0)
+    assert info["task"] == "right"
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+@pytest.mark.parametrize("action", [-1, 12, 1.5, "1", [1, 2], None])
+def test_invalid_action(env_id, action):
+    env = make(env_id, spawn_probability=0.0)
+    env.reset(seed=0)
+    if env_id != "GCCPDecider-v0" and action == 12:
+        action = 6
+    with pytest.raises(ValueError, match="invalid action"):
+        env.step(action)
+    assert env.world.steps == 0  # nothing happened
+
+
+@pytest.mark.parametrize("action", [np.int64(2), np.array(2), np.array([2]), 2])
+def test_integer_like_actions(action):
+    env = make("GCCPPlanner-v0", spawn_probability=0.0)
+    env.reset(seed=0)
+    env.step(action)
+    assert env.world.steps == 1
+
+
+def test_unsupported_render_mode():
+    from gccp_envs.planner_env import GCCPPlannerEnv
+
+    with pytest.raises(ValueError, match="unsupported render_mode 'ansi'"):
+        GCCPPlannerEnv(render_mode="ansi")
+    assert make("GCCPPlanner-v0").render() is None
+
+
+@pytest.mark.parametrize("env_id", ["GCCPPlanner-v0", "GCCPFlat-v0"])
+def test_time_limit_truncates(env_id):
+    env = make(env_id, spawn_probability=0.0, duration=1.0)
+    env.reset(seed=0)
+    for step in range(1, 11):
+        _, _, terminated, truncated, info = env.step(EgoAction.SLOW_DOWN)
+        assert not terminated
+        assert truncated == (step == 10)
+    assert info["timeout"] and not info["is_success"]
+    assert {"task", "crashed", "offroad", "wrong_exit"} <= info.keys()
+
+
+def test_decider_time_limit_truncates():
+    env = make("GCCPDecider-v0", spawn_probability=0.0, duration=1.0)
+    env.reset(seed=0)
+    _, _, terminated, truncated, info = env.step(0)
+    assert truncated and not terminated and info["timeout"]
+
+
+@pytest.mark.parametrize("env_id", ALL_ENVS)
+@pytest.mark.parametrize(("task", "success"), [("straight", True), ("left", False)])
+def test_is_success_only_at_the_tasks_own_exit(env_id, task, success):
+    env = make(env_id, spawn_probability=0.0)
+    env.reset(seed=0, options={"task": task})
+    place_ego(env.world, 6.0, -31.0, -np.pi / 2, 8.0)  # 2 m before the straight exit
+    action = 3 if env_id == "GCCPDecider-v0" else EgoAction.KEEP_DIRECTION
+    terminated = False
+    for _ in range(4):
+        _, _, terminated, _, info = env.step(action)
+        if terminated:
+            break
+    assert terminated
+    assert info["is_success"] is success
+    assert info["wrong_exit"] is not success
+    assert info["task"] == task
+
+
+def test_planner_goal_is_a_candidate_and_changes_every_decision_period():
+    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight")
+    env.reset(seed=1)
+    world = env.world
+    goal = env._subgoal.copy()
+    assert np.any(np.all(world.subgoal_candidates() == goal, axis=1))
+    for _ in range(9):
+        obs, *_ = env.step(EgoAction.KEEP_DIRECTION)
+        np.testing.assert_array_equal(env._subgoal, goal)
+    env.step(EgoAction.KEEP_DIRECTION)
+    assert world.steps == 10
+    assert np.any(np.all(world.subgoal_candidates() == env._subgoal, axis=1))
+    obs = env._observe()
+    np.testing.assert_allclose(obs["goal"], env.observer.to_ego(env._subgoal))
+
+
+def test_planner_action_masks_follow_the_world(make_world):
+    env = make("GCCPPlanner-v0", spawn_probability=0.0)
+    env.reset(seed=0)
+    place_ego(env.world, 6.0, 50.0, -np.pi / 2 + 0.4, 8.0)
+    np.testing.assert_array_equal(env.action_masks(), [False, False, False, False, True, False])

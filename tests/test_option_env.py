@@ -1,0 +1,167 @@
+"""GCCPDecider-v0: options of T_m planner steps, ground-truth futures and the subgoal mask."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from helpers import ego_frame, place_ego
+
+from gccp_envs.action import EgoAction
+from gccp_envs.option_env import GCCPDeciderEnv
+from gccp_envs.scripted import ScriptedPlanner
+
+
+class RecordingPlanner:
+    """Wraps a planner and records the ego pose and the arguments of every call."""
+
+    def __init__(self, env: GCCPDeciderEnv, inner=None) -> None:
+        self.env = env
+        self.inner = inner or ScriptedPlanner(env.config)
+        self.poses: list[np.ndarray] = []
+        self.goals: list[np.ndarray] = []
+        self.masks: list[np.ndarray] = []
+
+    def __call__(self, obs, mask):
+        self.poses.append(self.env.world.ego.as_array()[:3])
+        self.goals.append(obs["goal"].copy())
+        self.masks.append(np.asarray(mask).copy())
+        return self.inner(obs, mask)
+
+
+def make(seed=0, **kwargs):
+    env = gym.make("GCCPDecider-v0", **{"spawn_probability": 0.15, "task": "straight", **kwargs}).unwrapped
+    obs, _ = env.reset(seed=seed)
+    return env, obs
+
+
+def test_observation_holds_candidates_and_task_goal_in_the_ego_frame():
+    env, obs = make()
+    world = env.world
+    np.testing.assert_allclose(obs["subgoals"], env.observer.to_ego(world.subgoal_candidates()))
+    np.testing.assert_allclose(obs["task_goal"], env.observer.to_ego(world.task_goal))
+    ego = world.ego
+    goal_xy = ego_frame(world.task_goal[:2], ego.x, ego.y, ego.heading)
+    np.testing.assert_allclose(obs["task_goal"][:2], goal_xy, atol=1e-3)
+    assert obs["subgoals"].shape == (12, 3)
+    assert np.all(obs["subgoals"][:, 0] > -2.5 - 1e-3)  # candidates lie ahead (half a spacing back at most)
+
+
+def test_a_step_runs_the_planner_for_the_decision_period():
+    env, _ = make(seed=1)
+    planner = RecordingPlanner(env)
+    env.planner = planner
+    chosen = env.world.subgoal_candidates()[5].copy()
+    _, _, terminated, truncated, info = env.step(5)
+    assert not terminated and not truncated
+    assert env.world.steps == 10
+    assert len(planner.poses) == 10
+    assert info["future"].shape == (6, 10, 3) and info["future"].dtype == np.float32
+    assert info["future_mask"].shape == (6, 10) and info["future_mask"].dtype == bool
+    assert isinstance(info["planner_return"], float)
+    np.testing.assert_array_equal(env._subgoal, chosen)
+    # The planner saw the chosen subgoal, from where the ego was at each step, and a 6-action mask.
+    first = planner.poses[0]
+    np.testing.assert_allclose(planner.goals[0][:2], ego_frame(chosen[:2], *first), atol=1e-3)
+    assert all(mask.shape == (6,) and mask.any() for mask in planner.masks)
+
+
+def test_future_of_the_ego_is_what_it_drove():
+    env, _ = make(seed=2)
+    planner = RecordingPlanner(env)
+    env.planner = planner
+    start = env.world.ego.as_array()[:3]
+    _, _, terminated, _, info = env.step(3)
+    assert not terminated
+    driven = np.array([*planner.poses[1:], env.world.ego.as_array()[:3]])  # poses after steps 1..10
+    future, present = info["future"], info["future_mask"]
+    assert present[0].all()
+    np.testing.assert_allclose(future[0, :, :2], ego_frame(driven[:, :2], *start), atol=1e-4)
+    np.testing.assert_allclose(np.cos(future[0, :, 2]), np.cos(driven[:, 2] - start[2]), atol=1e-5)
+    np.testing.assert_allclose(np.sin(future[0, :, 2]), np.sin(driven[:, 2] - start[2]), atol=1e-5)
+    assert np.all(np.diff(future[0, :, 0]) >= -1e-6)  # it drove forward
+
+
+def test_future_of_the_neighbours_matches_the_world_history():
+    env, obs = make(seed=3, spawn_probability=0.25)
+    world = env.world
+    start = world.ego.as_array()[:3]
+    slots = world.neighbours()
+    uids = world.traffic.uid[slots].copy()
+    assert len(slots) >= 1
+    # The rows of the future follow the rows of the observation the decision was taken on.
+    np.testing.assert_array_equal(obs["history_mask"][1 : 1 + len(slots), -1], 1.0)
+    _, _, _, _, info = env.step(2)
+    future, present = info["future"], info["future_mask"]
+    poses, valid = world.poses_between(1, 10, slots, uids)
+    np.testing.assert_array_equal(present[1 : 1 + len(slots)], valid.T)
+    for row in range(len(slots)):
+        ok = valid[:, row]
+        np.testing.assert_allclose(future[1 + row, ok, :2], ego_frame(poses[ok, row, :2], *start), atol=1e-4)
+    np.testing.assert_array_equal(present[1 + len(slots) :], False)
+    np.testing.assert_array_equal(future[~present], 0.0)
+
+
+def test_an_option_ends_early_with_the_episode():
+    env, _ = make(seed=0, spawn_probability=0.0)
+    place_ego(env.world, 6.0, -31.0, -np.pi / 2, 8.0)  # 2 m before the straight exit
+    _, _, terminated, _, info = env.step(3)
+    assert terminated and info["is_success"]
+    steps = env.world.steps
+    assert 1 <= steps < 10
+    np.testing.assert_array_equal(info["future_mask"][0], [True] * steps + [False] * (10 - steps))
+
+
+def test_no_mask_function_allows_everything():
+    env, _ = make()
+    np.testing.assert_array_equal(env.action_masks(), np.ones(12, bool))
+
+
+def test_mask_function_result_is_used():
+    env, obs = make()
+    wanted = np.zeros(12, bool)
+    wanted[[2, 7]] = True
+    seen = []
+    env.set_mask_fn(lambda o: (seen.append(o), wanted)[1])
+    np.testing.assert_array_equal(env.action_masks(), wanted)
+    assert seen[0] is env._last_obs
+    np.testing.assert_array_equal(seen[0]["subgoals"], obs["subgoals"])
+    env.set_mask_fn(None)
+    assert env.action_masks().all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_all_false_mask_allows_only_the_nearest_candidate(seed):
+    env, _ = make(seed=seed, mask_fn=lambda o: np.zeros(12, bool))
+    for _ in range(2):
+        mask = env.action_masks()
+        assert mask.sum() == 1
+        nearest = np.argmin(np.hypot(*env._last_obs["subgoals"][:, :2].T))
+        assert mask[nearest]
+        _, _, terminated, truncated, _ = env.step(int(np.flatnonzero(mask)[0]))
+        if terminated or truncated:
+            break
+    np.testing.assert_array_equal(env._masked, np.ones(12, bool))  # drawn as all masked
+
+
+def test_mask_function_given_at_construction():
+    env = GCCPDeciderEnv(spawn_probability=0.0, mask_fn=lambda o: np.arange(12) < 3)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(env.action_masks(), np.arange(12) < 3)
+
+
+def test_custom_planner_drives():
+    env, _ = make(seed=0, spawn_probability=0.0)
+    env.planner = lambda obs, mask: int(EgoAction.SLOW_DOWN)
+    for _ in range(3):
+        env.step(0)
+    assert env.world.ego.speed == 0.0
+    assert env.world.steps == 30
+
+
+def test_future_survives_a_long_decision_period():
+    env, _ = make(seed=0, spawn_probability=0.0, decision_period=20, history_length=2, prediction_horizon=5)
+    _, _, terminated, truncated, info = env.step(3)
+    assert not terminated and not truncated and env.world.steps == 20
+    assert info["future"].shape == (6, 5, 3)
+    np.testing.assert_array_equal(info["future_mask"][0], np.ones(5, bool))

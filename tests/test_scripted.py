@@ -1,0 +1,79 @@
+"""Scripted controllers: pure pursuit planner and farthest-subgoal decider."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from helpers import path_pose, place_ego_on_path
+
+from gccp_envs.action import EgoAction
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner
+
+PLANNER = ScriptedPlanner(IntersectionConfig())
+
+
+def planner_obs(goal, speed):
+    history = np.zeros((6, 10, 9), np.float32)
+    history[0, -1, 7] = speed
+    return {"goal": np.asarray(goal, np.float32), "history": history}
+
+
+@pytest.mark.parametrize(
+    ("goal", "speed", "action"),
+    [
+        ((15.0, 0.0, 0.0), 8.0, EgoAction.KEEP_DIRECTION),
+        ((15.0, 1.0, 0.0), 8.0, EgoAction.KEEP_DIRECTION),  # pursuit curvature 0.009: nearest is straight
+        ((10.0, 3.0, 0.0), 8.0, EgoAction.SLOWLY_TURN_RIGHT),  # y > 0: right on screen
+        ((10.0, -3.0, 0.0), 8.0, EgoAction.SLOWLY_TURN_LEFT),
+        ((6.0, -4.0, 0.0), 6.0, EgoAction.QUICKLY_TURN_LEFT),
+        ((3.0, 0.0, 0.0), 8.0, EgoAction.SLOW_DOWN),  # too fast to stop on the goal
+        ((-1.0, 0.0, 0.0), 2.0, EgoAction.SLOW_DOWN),  # behind: stand still
+        ((10.0, -3.0, 0.0), 0.0, EgoAction.KEEP_DIRECTION),  # standing: get going before turning
+    ],
+)
+def test_scripted_planner_actions(goal, speed, action):
+    assert PLANNER(planner_obs(goal, speed)) == action
+
+
+def test_scripted_planner_respects_the_mask():
+    mask = np.ones(6, bool)
+    mask[EgoAction.SLOWLY_TURN_RIGHT] = False
+    action = PLANNER(planner_obs((10.0, 3.0, 0.0), 8.0), mask)
+    assert action != EgoAction.SLOWLY_TURN_RIGHT and mask[action]
+    assert action in (EgoAction.KEEP_DIRECTION, EgoAction.QUICKLY_TURN_RIGHT)
+    only_slow_down = np.eye(6, dtype=bool)[EgoAction.SLOW_DOWN]
+    assert PLANNER(planner_obs((15.0, 3.0, 0.0), 8.0), only_slow_down) == EgoAction.SLOW_DOWN
+
+
+def test_scripted_planner_reaches_and_stops_on_a_goal():
+    # A long decision period keeps the goal fixed for the whole run.
+    env = gym.make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", decision_period=50).unwrapped
+    obs, _ = env.reset(seed=0)
+    place_ego_on_path(env.world, 2, 30.0, 8.0)
+    env._subgoal = path_pose(env.world.layout, 2, 45.0)
+    obs = env._observe()
+    reached = False
+    for _ in range(45):
+        obs, _, terminated, _, info = env.step(PLANNER(obs, env.action_masks()))
+        reached |= info["goal_reached"]
+        assert not terminated
+    assert reached
+    assert env.world.ego.speed == 0.0
+    assert np.hypot(*obs["goal"][:2]) < 1.5
+
+
+@pytest.mark.parametrize("goal", [(0.3, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.8, 0.0, 0.0)])
+def test_scripted_planner_holds_still_on_its_goal(goal):
+    assert PLANNER(planner_obs(goal, 0.0)) == EgoAction.SLOW_DOWN
+
+
+def test_farthest_subgoal_decider():
+    decider = FarthestSubgoalDecider()
+    subgoals = np.zeros((12, 3), np.float32)
+    subgoals[:, 0] = np.arange(12) % 5
+    assert decider({"subgoals": subgoals}) == 4
+    mask = np.zeros(12, bool)
+    mask[[1, 7]] = True
+    assert decider({"subgoals": subgoals}, mask) == 7

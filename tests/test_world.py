@@ -1,0 +1,226 @@
+"""The world: episode start, outcomes (success only at the task's own exit), action masks, futures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import ego_frame, place_ego
+from hypothesis import given
+from hypothesis import strategies as st
+
+from gccp_envs.action import EgoAction, EgoState
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.scenario import TURN_OFFSET
+from gccp_envs.traffic import VEHICLE_LENGTH
+from gccp_envs.world import IntersectionWorld, StepOutcome
+
+# Just before each exit (the outbound lanes, 0.5 m before the exit distance), heading out.
+EXITS = {
+    "left": (-32.5, -2.0, np.pi),
+    "straight": (6.0, -32.5, -np.pi / 2),
+    "right": (32.5, 6.0, 0.0),
+}
+
+
+def test_reset_places_the_ego_on_the_south_arm():
+    cfg = IntersectionConfig(spawn_probability=0.12)
+    world = IntersectionWorld(cfg)
+    for seed in range(5):
+        world.reset(np.random.default_rng(seed))
+        ego, layout = world.ego, world.layout
+        assert world.task in ("left", "straight", "right")
+        assert world.steps == 0 and world.time == 0.0
+        assert ego.heading == pytest.approx(-np.pi / 2)
+        assert min(abs(ego.x - 2.0), abs(ego.x - 6.0)) < 1e-9  # the centre of one of its two lanes
+        distance = ego.y - layout.junction
+        assert cfg.ego_start_distance[0] - 1e-9 <= distance <= cfg.ego_start_distance[1] + 1e-9
+        assert 0.0 <= ego.speed <= cfg.ego_start_speed[1]
+        assert world.ego_on_road(ego)
+        np.testing.assert_allclose(world.task_goal, layout.task_goal(world.task))
+        # Traffic was warmed up, and none of it is near the ego.
+        idx = world.traffic.indices
+        assert world.traffic.spawned > 0
+        assert np.all(np.hypot(*(world.traffic.pose[idx, :2] - [ego.x, ego.y]).T) >= 15.0)
+
+
+def test_reset_task_option_and_ego_lane_task():
+    world = IntersectionWorld(IntersectionConfig(spawn_probability=0.0, ego_lane="task"))
+    for seed in range(4):
+        world.reset(np.random.default_rng(seed), "left")
+        assert world.task == "left"
+        assert world.ego.x == pytest.approx(2.0)  # left turns start from lane 0
+        world.reset(np.random.default_rng(seed), "right")
+        assert world.ego.x == pytest.approx(6.0)
+    with pytest.raises(ValueError, match="unknown task 'diagonal'"):
+        world.reset(np.random.default_rng(0), "diagonal")
+
+
+@pytest.mark.parametrize("task", sorted(EXITS))
+@pytest.mark.parametrize("exit_task", sorted(EXITS))
+def test_success_only_at_the_tasks_own_exit(make_world, task, exit_task):
+    world = make_world(task)
+    place_ego(world, *EXITS[exit_task], 8.0)
+    outcome = world.step(EgoAction.KEEP_DIRECTION)
+    assert outcome.success == (task == exit_task)
+    assert outcome.wrong_exit == (task != exit_task)
+    assert outcome.terminal
+    assert not outcome.crashed and not outcome.offroad
+
+
+@pytest.mark.parametrize("task", sorted(EXITS))
+def test_no_outcome_before_the_exit_distance(make_world, task):
+    world = make_world(task)
+    x, y, h = EXITS[task]
+    # 2 m further back: one step does not reach the exit distance yet.
+    place_ego(world, x - 2.0 * np.cos(h), y - 2.0 * np.sin(h), h, 8.0)
+    assert world.step(EgoAction.KEEP_DIRECTION) == StepOutcome()
+
+
+def test_driving_back_out_on_an_inbound_lane_is_no_exit(make_world):
+    world = make_world("left")
+    place_ego(world, -32.5, 2.0, np.pi, 8.0)  # west arm, but on the inbound (east-bound) lanes
+    outcome = world.step(EgoAction.KEEP_DIRECTION)
+    assert not outcome.success and not outcome.wrong_exit and not outcome.terminal
+
+
+def test_step_outcome_terminal():
+    assert not StepOutcome().terminal
+    for flag in ("crashed", "offroad", "success", "wrong_exit"):
+        assert StepOutcome(**{flag: True}).terminal
+
+
+def test_crash_with_traffic(make_world):
+    world = make_world()
+    place_ego(world, 6.0, 40.0, -np.pi / 2, 8.0)
+    world.traffic.spawn(2, 83.0 - 40.0 + VEHICLE_LENGTH - 0.2, speed=0.0)  # just ahead, touching
+    outcome = world.step(EgoAction.KEEP_DIRECTION)
+    assert outcome.crashed and outcome.terminal
+
+
+def test_off_road(make_world):
+    world = make_world()
+    place_ego(world, 6.0, 50.0, -np.pi / 2 + 0.4, 8.0)
+    assert world.ego_on_road(world.ego)
+    outcome = world.step(EgoAction.SLOWLY_TURN_RIGHT)
+    assert outcome.offroad and outcome.terminal
+
+
+def test_action_mask_keeps_the_ego_on_the_road(make_world):
+    world = make_world()
+    # At the right kerb of the south arm, heading 23 degrees off the road: only a quick left
+    # turn keeps all four corners on the road.
+    state = (6.0, 50.0, -np.pi / 2 + 0.4, 8.0)
+    place_ego(world, *state)
+    assert world.ego_on_road(world.ego)
+    mask = world.action_mask()
+    np.testing.assert_array_equal(mask, [False, False, False, False, True, False])
+    for action in EgoAction:
+        place_ego(world, *state)
+        assert world.step(action).offroad != mask[action]
+
+
+def test_action_mask_all_allowed_in_the_middle_of_the_road(make_world):
+    world = make_world()
+    place_ego(world, 4.0, 50.0, -np.pi / 2, 8.0)
+    assert world.action_mask().all()
+
+
+def test_action_mask_never_all_false(make_world):
+    world = make_world()
+    place_ego(world, 30.0, 30.0, 0.0, 8.0)  # off the road: every action stays off it
+    np.testing.assert_array_equal(world.action_mask(), np.ones(6, bool))
+
+
+@given(st.floats(-90, 90), st.floats(-90, 90), st.floats(-np.pi, np.pi), st.floats(0.0, 12.0))
+def test_action_mask_is_never_empty(x, y, heading, speed):
+    world = _shared_world()
+    world.ego = EgoState(x, y, heading, speed)
+    mask = world.action_mask()
+    assert mask.shape == (6,) and mask.dtype == bool
+    assert mask.any()
+
+
+_WORLD: list[IntersectionWorld] = []
+
+
+def _shared_world() -> IntersectionWorld:
+    if not _WORLD:
+        world = IntersectionWorld(IntersectionConfig(spawn_probability=0.0))
+        world.reset(np.random.default_rng(0), "straight")
+        _WORLD.append(world)
+    return _WORLD[0]
+
+
+def test_history_window_and_validity(make_world):
+    world = make_world(seed=2)
+    slots = np.array([world.ego_slot])
+    poses, valid = world.poses_between(-5, 3, slots, world.slot_uids(slots))
+    # The ego's back-filled past is valid; steps not simulated yet are not.
+    np.testing.assert_array_equal(valid[:, 0], [True] * 6 + [False] * 3)
+    np.testing.assert_allclose(poses[5, 0], world.ego.as_array())
+    for _ in range(3):
+        world.step(EgoAction.KEEP_DIRECTION)
+    poses, valid = world.poses_between(3, 3, slots, world.slot_uids(slots))
+    assert valid.all()
+    np.testing.assert_allclose(poses[0, 0], world.ego.as_array())
+    # Older than the history buffer: invalid.
+    _, valid = world.poses_between(3 - world._hist_len, 3 - world._hist_len, slots, world.slot_uids(slots))
+    assert not valid.any()
+
+
+def test_decision_future_is_what_happened(make_world):
+    world = make_world(seed=0, spawn_probability=0.2)
+    record = world.begin_decision()
+    origin, heading = record.origin.copy(), record.heading
+    driven = []
+    neighbours = record.slots[1:]
+    npc = []
+    for action in [1, 1, 2, 2, 4, 0, 0, 3, 5, 1]:
+        world.step(action)
+        driven.append(world.ego.as_array()[:3])
+        npc.append(world.traffic.pose[neighbours].copy())
+    future, present = world.decision_future(record)
+    assert future.shape == (6, 10, 3) and present.shape == (6, 10)
+    driven = np.array(driven)
+    np.testing.assert_allclose(future[0, :, :2], ego_frame(driven[:, :2], *origin, heading), atol=1e-4)
+    np.testing.assert_allclose(np.cos(future[0, :, 2]), np.cos(driven[:, 2] - heading), atol=1e-5)
+    assert present[0].all()
+    for row, _ in enumerate(neighbours, start=1):
+        alive = present[row]
+        track = np.array(npc)[:, row - 1]
+        np.testing.assert_allclose(
+            future[row, alive, :2], ego_frame(track[alive, :2], *origin, heading), atol=1e-4
+        )
+    assert len(neighbours) > 0
+    np.testing.assert_array_equal(present[len(record.slots) :], False)
+    np.testing.assert_array_equal(future[~present], 0.0)
+
+
+def test_decision_future_of_an_early_end_is_partial(make_world):
+    world = make_world(seed=0)
+    record = world.begin_decision()
+    for _ in range(4):
+        world.step(EgoAction.KEEP_DIRECTION)
+    _, present = world.decision_future(record)
+    np.testing.assert_array_equal(present[0], [True] * 4 + [False] * 6)
+
+
+def test_task_offsets():
+    assert TURN_OFFSET == {"left": 1, "straight": 2, "right": 3}
+
+
+def test_stop_and_go_in_the_world(make_world):
+    world = make_world()
+    place_ego(world, 6.0, 60.0, -np.pi / 2, 8.0)
+    for _ in range(20):  # 8 m/s at 4 m/s^2: stopped after 2 s
+        world.step(EgoAction.SLOW_DOWN)
+    assert world.ego.speed == 0.0
+    stopped = world.ego.as_array()
+    assert stopped[1] == pytest.approx(60.0 - 8.0)  # braking distance v^2 / (2 a)
+    for _ in range(5):
+        assert world.step(EgoAction.SLOW_DOWN) == StepOutcome()
+        np.testing.assert_array_equal(world.ego.as_array(), stopped)
+    for _ in range(45):  # 0.2 m/s per step: cruise speed after 40 steps
+        assert not world.step(EgoAction.KEEP_DIRECTION).terminal
+    assert world.ego.speed == world.config.cruise_speed
+    assert world.ego.x == pytest.approx(6.0) and world.ego.y < stopped[1]
