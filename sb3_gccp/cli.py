@@ -5,6 +5,7 @@ Commands:
 - ``sb3_gccp rollout``: play seeded episodes with the scripted hierarchy (farthest-subgoal
   decision-maker + pure-pursuit motion-planner) and print the paper's table; optional GIF of one episode.
 - ``sb3_gccp config``: print every world config key with its value and meaning.
+- ``sb3_gccp train --stage planner``: train the motion-planner (MaskablePPO) from a zoo-style YAML file.
 
 Errors in the input are reported on one line and exit with status 2.
 """
@@ -108,6 +109,37 @@ def _write_gif(env: Any, policy: Any, task: str, seed: int, path: str, run_episo
     print(f"wrote {path} ({len(frames)} frames, one per decision)")
 
 
+def _train(args: argparse.Namespace) -> None:
+    from sb3_gccp.hyperparams import HyperparamsError, default_config_file
+    from sb3_gccp.stages import StageRequest, latest_run, train_planner
+
+    config_file = Path(args.config) if args.config else default_config_file("ppo_mask.yml")
+    resume = None
+    if args.resume is not None:
+        resume = Path(args.resume) if args.resume else latest_run(Path(args.log_folder) / args.stage)
+        if resume is None:
+            raise CLIError(f"nothing to resume in {Path(args.log_folder) / args.stage}")
+    if args.n_timesteps is not None and args.n_timesteps < 1:
+        raise CLIError("-n/--n-timesteps must be positive")
+    request = StageRequest(
+        config_file=config_file,
+        seed=args.seed,
+        n_timesteps=args.n_timesteps,
+        log_folder=Path(args.log_folder),
+        resume=resume,
+        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        verbose=args.verbose,
+        save_freq=args.save_freq,
+        torch_threads=args.torch_threads,
+        argv=["sb3_gccp", *sys.argv[1:]],
+    )
+    try:
+        path = train_planner(request)
+    except (HyperparamsError, ValueError) as err:
+        raise CLIError(str(err)) from err
+    print(f"saved {path}")
+
+
 def _config(args: argparse.Namespace) -> None:
     config = load_world_config(args.config, args.set)
     docs = _field_docs()
@@ -158,6 +190,27 @@ def build_parser() -> argparse.ArgumentParser:
     rollout.add_argument("--gif", help="also write a GIF of the first task's first episode")
     world_options(rollout)
     rollout.set_defaults(func=_rollout)
+
+    train = sub.add_parser("train", help="train a stage from a zoo-style YAML file")
+    train.add_argument(
+        "--stage", choices=["planner"], required=True, help="planner: MaskablePPO on GCCPPlanner-v0"
+    )
+    train.add_argument("--config", help="zoo-style YAML (default: zoo_configs/ppo_mask.yml)")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("-n", "--n-timesteps", type=int, help="override the file's n_timesteps")
+    train.add_argument("--log-folder", default="runs", help="runs go to LOG_FOLDER/STAGE/ENV_SEED_TIME")
+    train.add_argument(
+        "--resume",
+        nargs="?",
+        const="",
+        metavar="RUN_DIR",
+        help="continue a run from its last checkpoint (default: the newest run)",
+    )
+    train.add_argument("--save-freq", type=int, default=10_000, help="env steps between checkpoints")
+    train.add_argument("--torch-threads", type=int, help="torch threads of the learner")
+    train.add_argument("--no-progress", action="store_true", help="no progress bar")
+    train.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    train.set_defaults(func=_train)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")
     world_options(config)

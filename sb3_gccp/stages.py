@@ -1,0 +1,166 @@
+"""Training stages. A run folder holds everything a run needs to be inspected, resumed or evaluated.
+
+Run folder layout (rl-zoo's, plus our checkpoints)::
+
+    <log_folder>/<stage>/<env_id>_<seed>_<time>/
+        config.yml      resolved hyperparameters and world config
+        args.yml        the command's arguments
+        command.txt     the command line
+        monitor/        one Monitor CSV per env worker
+        tb/             TensorBoard logs
+        checkpoints/    <stage>_<steps>_steps.zip every ``save_freq`` steps
+        <stage>.zip     the trained model
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch as th
+import yaml
+from sb3_contrib import MaskablePPO
+from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+from gccp_envs.config import IntersectionConfig
+from sb3_gccp.hyperparams import (
+    HyperparamsError,
+    check_keys,
+    constructor_defaults,
+    load_hyperparams,
+    ppo_gradient_steps_per_timestep,
+    resolve_class,
+    resolve_schedule,
+)
+
+PLANNER_ENV_ID = "GCCPPlanner-v0"
+
+
+@dataclass
+class StageRequest:
+    """What the user asked of a training stage."""
+
+    config_file: Path
+    seed: int = 0
+    n_timesteps: int | None = None
+    log_folder: Path = Path("runs")
+    resume: Path | None = None
+    progress_bar: bool = True
+    verbose: int = 0
+    save_freq: int = 10_000
+    """Environment steps between checkpoints (over all workers)."""
+    torch_threads: int | None = None
+    """Torch threads of the learner process (the env workers use no torch); ``None`` keeps torch's."""
+    argv: list[str] = field(default_factory=lambda: list(sys.argv))
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The checkpoint with the most steps in a run folder, if any."""
+    checkpoints = list((run_dir / "checkpoints").glob("*_steps.zip"))
+    return max(checkpoints, key=lambda p: int(p.stem.split("_")[-2]), default=None)
+
+
+def latest_run(stage_dir: Path) -> Path | None:
+    """The most recently started run folder of a stage, if any."""
+    runs = [p for p in stage_dir.glob("*") if (p / "config.yml").is_file()]
+    return max(runs, key=lambda p: (p / "config.yml").stat().st_mtime, default=None)
+
+
+def train_planner(request: StageRequest) -> Path:
+    """Train the motion-planner with MaskablePPO on ``GCCPPlanner-v0``; return the model path.
+
+    With ``request.resume`` (a run folder), training continues from its last checkpoint with the
+    run's own resolved config, up to the same total budget.
+    """
+    if request.torch_threads is not None:
+        th.set_num_threads(request.torch_threads)
+    seed = request.seed
+    if request.resume is not None:
+        run_dir = request.resume
+        if not (run_dir / "config.yml").is_file():
+            raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")
+        settings = yaml.safe_load((run_dir / "config.yml").read_text())
+        seed = int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
+    else:
+        settings = load_hyperparams(request.config_file, PLANNER_ENV_ID)
+        if request.n_timesteps is not None:
+            settings["n_timesteps"] = request.n_timesteps
+        run_dir = request.log_folder / "planner" / f"{PLANNER_ENV_ID}_{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    check_keys(settings, MaskablePPO)
+    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
+    n_timesteps = int(settings.get("n_timesteps", 100_000))
+    n_envs = int(settings.get("n_envs", 1))
+    if n_timesteps < 1 or n_envs < 1:
+        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    if request.resume is None:
+        _write_run_files(run_dir, settings, request)
+    env = make_vec_env(
+        PLANNER_ENV_ID,
+        n_envs=n_envs,
+        seed=seed,
+        env_kwargs={"config": world},
+        monitor_dir=str(run_dir / "monitor"),
+        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+    )
+    checkpoint = latest_checkpoint(run_dir) if request.resume is not None else None
+    if checkpoint is not None:
+        model = MaskablePPO.load(checkpoint, env=env, tensorboard_log=str(run_dir / "tb"))
+    else:
+        model = MaskablePPO(
+            env=env,
+            tensorboard_log=str(run_dir / "tb"),
+            seed=seed,
+            verbose=request.verbose,
+            **_algorithm_kwargs(settings, n_timesteps),
+        )
+    callback = CheckpointCallback(
+        max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
+    )
+    remaining = n_timesteps - model.num_timesteps
+    try:
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=callback,
+                progress_bar=request.progress_bar,
+                reset_num_timesteps=checkpoint is None,
+                tb_log_name="planner",
+            )
+    finally:
+        env.close()
+    path = run_dir / "planner.zip"
+    model.save(path)
+    return path
+
+
+def _algorithm_kwargs(settings: dict[str, Any], n_timesteps: int) -> dict[str, Any]:
+    """Constructor arguments of MaskablePPO from resolved settings."""
+    defaults = constructor_defaults(MaskablePPO)
+    kwargs = {k: v for k, v in settings.items() if k not in ("n_timesteps", "n_envs", "env_kwargs", "policy")}
+    per_timestep = ppo_gradient_steps_per_timestep(settings, defaults)
+    for key in ("learning_rate", "clip_range"):
+        if key in kwargs:
+            kwargs[key] = resolve_schedule(kwargs[key], key, per_timestep, n_timesteps)
+    kwargs["policy"] = resolve_class(
+        str(settings.get("policy", "MotionPlannerPolicy")), MaskablePPO.policy_aliases
+    )
+    return kwargs
+
+
+def _write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:
+    run_dir.mkdir(parents=True, exist_ok=False)
+    (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
+    args = {
+        "config_file": str(request.config_file),
+        "seed": request.seed,
+        "n_timesteps": request.n_timesteps,
+        "log_folder": str(request.log_folder),
+    }
+    (run_dir / "args.yml").write_text(yaml.safe_dump(args, sort_keys=True))
+    (run_dir / "command.txt").write_text(shlex.join(request.argv) + "\n")

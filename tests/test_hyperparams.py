@@ -1,0 +1,78 @@
+"""Zoo-style hyperparameter files: loading, key checks, class names and the paper's step schedule."""
+
+from __future__ import annotations
+
+import pytest
+from sb3_contrib import MaskablePPO
+
+from sb3_gccp.hyperparams import (
+    HyperparamsError,
+    StepSchedule,
+    check_keys,
+    default_config_file,
+    load_hyperparams,
+    resolve_class,
+    resolve_schedule,
+)
+
+
+def test_shipped_planner_config_is_valid():
+    settings = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPPlanner-v0")
+    check_keys(settings, MaskablePPO)
+    assert settings["policy"] == "MotionPlannerPolicy"
+    assert settings["n_epochs"] == 5  # paper: K_m = 5
+    assert settings["learning_rate"] == {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 2000}
+
+
+def test_missing_entry_and_bad_yaml(tmp_path):
+    file = tmp_path / "h.yml"
+    file.write_text("CartPole-v1: {n_envs: 1}\n")
+    with pytest.raises(HyperparamsError, match="no entry for GCCPPlanner-v0 \\(entries: CartPole-v1\\)"):
+        load_hyperparams(file, "GCCPPlanner-v0")
+    file.write_text("GCCPPlanner-v0: [unclosed\n")
+    with pytest.raises(HyperparamsError, match="not valid YAML"):
+        load_hyperparams(file, "GCCPPlanner-v0")
+    with pytest.raises(HyperparamsError, match="not found"):
+        load_hyperparams(tmp_path / "missing.yml", "GCCPPlanner-v0")
+
+
+def test_unknown_key_names_it_with_a_hint():
+    with pytest.raises(HyperparamsError, match="'n_step' \\(did you mean 'n_steps'\\?\\)"):
+        check_keys({"n_step": 8, "gamma": 0.9}, MaskablePPO)
+    with pytest.raises(HyperparamsError, match=r"unsupported .*normalize"):
+        check_keys({"normalize": True}, MaskablePPO)
+
+
+def test_yaml_is_never_evaluated(tmp_path):
+    file = tmp_path / "h.yml"
+    file.write_text('GCCPPlanner-v0:\n  policy_kwargs: "dict(net_arch=[8])"\n')
+    settings = load_hyperparams(file, "GCCPPlanner-v0")
+    assert settings["policy_kwargs"] == "dict(net_arch=[8])"  # a string, as written
+
+
+def test_resolve_class_by_alias_and_dotted_path():
+    assert (
+        resolve_class("MultiInputPolicy", MaskablePPO.policy_aliases)
+        is MaskablePPO.policy_aliases["MultiInputPolicy"]
+    )
+    assert resolve_class("sb3_contrib.MaskablePPO") is MaskablePPO
+    with pytest.raises(HyperparamsError, match="unknown class name 'Nope'"):
+        resolve_class("Nope")
+    with pytest.raises(HyperparamsError, match="cannot import"):
+        resolve_class("sb3_gccp.nothing.Here")
+
+
+def test_step_schedule_switches_after_the_paper_gradient_steps():
+    # PPO with n_epochs 5 and batch 256 takes 5/256 gradient steps per env step: 2000 gradient steps
+    # happen after 102400 env steps, 34.13 % of a 300k budget.
+    schedule = resolve_schedule(
+        {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 2000}, "learning_rate", 5 / 256, 300_000
+    )
+    assert isinstance(schedule, StepSchedule)
+    assert schedule.switch_remaining == pytest.approx(1 - 102_400 / 300_000)
+    assert schedule(1.0) == 1e-4
+    assert schedule(1 - 102_000 / 300_000) == 1e-4
+    assert schedule(1 - 103_000 / 300_000) == 1e-5
+    assert resolve_schedule(3e-4, "learning_rate", 1.0, 10) == 3e-4
+    with pytest.raises(HyperparamsError, match="learning_rate must be a number"):
+        resolve_schedule("lin_1e-4", "learning_rate", 1.0, 10)

@@ -1,0 +1,110 @@
+"""The planner training stage through the CLI: run folder, resume, bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+TINY = {
+    "GCCPPlanner-v0": {
+        "n_timesteps": 32,
+        "n_envs": 1,
+        "policy": "MultiInputPolicy",
+        "n_steps": 16,
+        "batch_size": 16,
+        "n_epochs": 1,
+        "learning_rate": {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 1},
+        "policy_kwargs": {"net_arch": {"pi": [8], "vf": [8]}},
+        "env_kwargs": {"spawn_probability": 0.0, "warmup_time": 0.0},
+    }
+}
+
+
+def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture
+def tiny_config(tmp_path: Path) -> Path:
+    path = tmp_path / "tiny.yml"
+    path.write_text(yaml.safe_dump(TINY))
+    return path
+
+
+def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_config):
+    result = sb3_gccp(
+        "train",
+        "--stage",
+        "planner",
+        "--config",
+        str(tiny_config),
+        "--log-folder",
+        "runs",
+        "--save-freq",
+        "16",
+        "--seed",
+        "3",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "planner").iterdir()
+    assert run.name.startswith("GCCPPlanner-v0_3_")
+    for name in ("planner.zip", "config.yml", "args.yml", "command.txt"):
+        assert (run / name).is_file(), name
+    assert yaml.safe_load((run / "config.yml").read_text()) == TINY["GCCPPlanner-v0"]
+    assert "--seed 3" in (run / "command.txt").read_text()
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
+        "planner_16_steps.zip",
+        "planner_32_steps.zip",
+    ]
+    assert list((run / "monitor").glob("*.monitor.csv"))
+    assert list((run / "tb").rglob("events.out.tfevents.*"))
+
+    # Interrupted after the first checkpoint: resume trains the rest of the budget.
+    (run / "checkpoints" / "planner_32_steps.zip").unlink()
+    (run / "planner.zip").unlink()
+    result = sb3_gccp(
+        "train", "--stage", "planner", "--log-folder", "runs", "--resume", "--save-freq", "16", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    assert (run / "checkpoints" / "planner_32_steps.zip").is_file()
+    check = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sb3_gccp; from sb3_contrib import MaskablePPO; "
+            f"print(MaskablePPO.load({str(run / 'planner.zip')!r}).num_timesteps)",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert check.stdout.strip() == "32", check.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--config", "missing.yml"], "hyperparameter file not found: missing.yml"),
+        (["--config", "bad.yml"], "unknown hyperparameter(s): 'n_step' (did you mean 'n_steps'?)"),
+        (
+            ["--config", "badworld.yml"],
+            "unknown intersection config key(s): 'spawn_prob' (did you mean 'spawn_probability'?)",
+        ),
+        (["--resume"], "nothing to resume in runs/planner"),
+        (["-n", "0"], "-n/--n-timesteps must be positive"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    (tmp_path / "bad.yml").write_text("GCCPPlanner-v0:\n  n_step: 8\n")
+    (tmp_path / "badworld.yml").write_text("GCCPPlanner-v0:\n  env_kwargs: {spawn_prob: 0.1}\n")
+    result = sb3_gccp("train", "--stage", "planner", "--log-folder", "runs", *args, cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [f"sb3_gccp: error: {message}"]
+    assert not (tmp_path / "runs" / "planner").exists() or not any((tmp_path / "runs" / "planner").iterdir())
