@@ -35,18 +35,14 @@ def load_world_config(path: str | None, assignments: list[str]) -> IntersectionC
 
     Values of ``--set`` are read as YAML scalars or lists (``task=left``, ``spawn_probability=0.1``).
     """
+    from sb3_gccp.hyperparams import HyperparamsError, read_yaml_mapping
+
     values: dict[str, Any] = {}
     if path is not None:
-        file = Path(path)
-        if not file.is_file():
-            raise CLIError(f"config file not found: {path}")
         try:
-            loaded = yaml.safe_load(file.read_text())
-        except yaml.YAMLError as err:
-            raise CLIError(f"config file {path} is not valid YAML: {str(err).splitlines()[0]}") from err
-        if loaded is not None and not isinstance(loaded, dict):
-            raise CLIError(f"config file {path} must hold a mapping of config keys")
-        values.update(loaded or {})
+            values.update(read_yaml_mapping(path, "config file"))
+        except HyperparamsError as err:
+            raise CLIError(str(err)) from err
     for item in assignments:
         key, sep, raw = item.partition("=")
         if not sep or not key:

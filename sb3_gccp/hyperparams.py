@@ -67,21 +67,34 @@ class StepSchedule:
         return self.initial if progress_remaining > self.switch_remaining else self.final
 
 
+def read_yaml_mapping(path: str | Path, what: str) -> dict[str, Any]:
+    """A YAML file holding a mapping (an empty file is an empty mapping), read with ``safe_load``.
+
+    :param what: how errors name the file, e.g. "hyperparameter file"
+    :raises HyperparamsError: missing file, bad YAML, or not a mapping
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise HyperparamsError(f"{what} not found: {path}")
+    try:
+        data = yaml.safe_load(file.read_text())
+    except yaml.YAMLError as err:
+        raise HyperparamsError(f"{what} {path} is not valid YAML: {str(err).splitlines()[0]}") from err
+    if data is not None and not isinstance(data, dict):
+        raise HyperparamsError(f"{what} {path} must hold a mapping")
+    return dict(data or {})
+
+
 def load_hyperparams(path: str | Path, env_id: str) -> dict[str, Any]:
     """The settings of ``env_id`` in a zoo-style YAML file.
 
     :raises HyperparamsError: missing file, bad YAML, or no entry for ``env_id``
     """
-    file = Path(path)
-    if not file.is_file():
-        raise HyperparamsError(f"hyperparameter file not found: {path}")
-    try:
-        data = yaml.safe_load(file.read_text())
-    except yaml.YAMLError as err:
-        raise HyperparamsError(f"{path} is not valid YAML: {str(err).splitlines()[0]}") from err
-    if not isinstance(data, dict) or env_id not in data:
-        keys = ", ".join(map(str, data)) if isinstance(data, dict) else "none"
-        raise HyperparamsError(f"{path} has no entry for {env_id} (entries: {keys})")
+    data = read_yaml_mapping(path, "hyperparameter file")
+    if env_id not in data:
+        raise HyperparamsError(
+            f"{path} has no entry for {env_id} (entries: {', '.join(map(str, data)) or 'none'})"
+        )
     settings = data[env_id]
     if not isinstance(settings, dict):
         raise HyperparamsError(f"{path}: the entry for {env_id} must be a mapping")

@@ -44,3 +44,19 @@ def ego_frame(points: np.ndarray, x: float, y: float, heading: float) -> np.ndar
     """World points (..., 2) in the frame of a pose, computed independently of the package."""
     rot = np.array([[np.cos(heading), np.sin(heading)], [-np.sin(heading), np.cos(heading)]])
     return (np.asarray(points, float) - np.array([x, y])) @ rot.T
+
+
+TINY_PLANNER_HYPERPARAMS = {
+    "GCCPPlanner-v0": {
+        "n_timesteps": 32,
+        "n_envs": 1,
+        "policy": "MultiInputPolicy",
+        "n_steps": 16,
+        "batch_size": 16,
+        "n_epochs": 1,
+        "learning_rate": {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 1},
+        "policy_kwargs": {"net_arch": {"pi": [8], "vf": [8]}},
+        "env_kwargs": {"spawn_probability": 0.0, "warmup_time": 0.0, "duration": 2.0},
+    }
+}
+"""A planner run that takes seconds: tiny MLP, 32 steps, an empty road, 2 s episodes."""

@@ -8,20 +8,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import TINY_PLANNER_HYPERPARAMS
 
-TINY = {
-    "GCCPPlanner-v0": {
-        "n_timesteps": 32,
-        "n_envs": 1,
-        "policy": "MultiInputPolicy",
-        "n_steps": 16,
-        "batch_size": 16,
-        "n_epochs": 1,
-        "learning_rate": {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 1},
-        "policy_kwargs": {"net_arch": {"pi": [8], "vf": [8]}},
-        "env_kwargs": {"spawn_probability": 0.0, "warmup_time": 0.0},
-    }
-}
+TINY = TINY_PLANNER_HYPERPARAMS
 
 
 def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

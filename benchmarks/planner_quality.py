@@ -1,0 +1,80 @@
+"""How well a frozen motion-planner reaches subgoals and completes tasks.
+
+1. ``GCCPPlanner-v0`` with default traffic, subgoals drawn uniformly from the 12 candidates and held
+   for ``--hold-steps`` (3 s by default, so that even the farthest candidate is within reach): the share
+   of subgoals reached, over the subgoals whose hold was not cut short by a collision or the time
+   limit, and the share of episodes that end off the road.
+2. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
+   on roads without traffic: the share of episodes that complete their task.
+
+Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
+Last line: ``task_completion_empty_road <rate>`` (goals: completion >= 0.98, reach >= 0.95,
+off-road <= 0.01).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from tqdm import tqdm
+
+import sb3_gccp  # noqa: F401  (registers the environments)
+from gccp_envs.config import TASKS
+from gccp_envs.option_env import GCCPDeciderEnv
+from gccp_envs.planner_env import GCCPPlannerEnv
+from gccp_envs.scripted import FarthestSubgoalDecider
+from sb3_gccp.evaluation import evaluate
+from sb3_gccp.frozen import FrozenPolicy
+
+
+def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps: int) -> dict[str, float]:
+    """Reach and off-road rates with uniformly drawn subgoals, over all tasks."""
+    env = GCCPPlannerEnv(decision_period=hold_steps, prediction_horizon=min(10, hold_steps))
+    reached = counted = offroad = total = 0
+    for task in TASKS:
+        for k in tqdm(range(episodes), desc=f"subgoals {task}", leave=False):
+            obs, _ = env.reset(seed=seed + k, options={"task": task})
+            hit, steps_held = False, 0
+            while True:
+                obs, _, terminated, truncated, info = env.step(planner(obs, env.action_masks()))
+                hit |= info["goal_reached"]
+                steps_held += 1
+                if terminated or truncated:
+                    # A hold cut short by a collision or the time limit says nothing about the planner.
+                    if hit or not (info["crashed"] or info["timeout"]):
+                        reached, counted = reached + hit, counted + 1
+                    offroad += info["offroad"]
+                    total += 1
+                    break
+                if steps_held == hold_steps:
+                    reached, counted = reached + hit, counted + 1
+                    hit, steps_held = False, 0
+    return {"subgoal_reach": reached / max(counted, 1), "subgoals": counted, "offroad": offroad / total}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True, help="the planner's SB3 .zip")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes per task in each part")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--hold-steps", type=int, default=30, help="steps each drawn subgoal is held")
+    args = parser.parse_args()
+    planner = FrozenPolicy(args.model)
+    reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps)
+    env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
+    results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
+    completion = sum(r.success for r in results) / len(results)
+    print(f"model {args.model}, {args.episodes} episodes per task, seed {args.seed}")
+    print(
+        f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "
+        f"{args.hold_steps} steps (default traffic)"
+    )
+    print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
+    for task in TASKS:
+        rows = [r for r in results if r.task == task]
+        print(f"  {task:<9} completion {sum(r.success for r in rows) / len(rows):.3f} (empty road)")
+    print(f"task_completion_empty_road {completion:.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""rl-zoo3's own trainer through our launcher: ppo_mask, masked evaluation, our schedule."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import yaml
+from helpers import TINY_PLANNER_HYPERPARAMS
+
+pytest.importorskip("rl_zoo3")
+
+TINY = TINY_PLANNER_HYPERPARAMS
+
+
+def test_zoo_launcher_trains_with_masked_evaluation(tmp_path):
+    (tmp_path / "tiny.yml").write_text(yaml.safe_dump(TINY))
+    args = [
+        "--algo",
+        "ppo_mask",
+        "--env",
+        "GCCPPlanner-v0",
+        "--conf-file",
+        "tiny.yml",
+        "-f",
+        "logs",
+        "--eval-freq",
+        "16",
+        "--eval-episodes",
+        "1",
+        "--seed",
+        "0",
+        "--vec-env",
+        "dummy",
+    ]
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.zoo", *args],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    run = tmp_path / "logs" / "ppo_mask" / "GCCPPlanner-v0_1"
+    assert (run / "GCCPPlanner-v0.zip").is_file()
+    assert (run / "evaluations.npz").is_file()  # the masked evaluation ran
+    # rl-zoo writes its config as a python-tagged OrderedDict: check the text, do not load it.
+    assert "MultiInputPolicy" in (run / "GCCPPlanner-v0" / "config.yml").read_text()
+    check = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sb3_gccp; from sb3_contrib import MaskablePPO; "
+            f"m = MaskablePPO.load({str(run / 'GCCPPlanner-v0.zip')!r}); "
+            "print(m.num_timesteps, m.lr_schedule(1.0), m.lr_schedule(0.0))",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert check.stdout.split() == ["32", "0.0001", "1e-05"], check.stderr[-2000:]
