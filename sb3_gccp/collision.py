@@ -58,10 +58,13 @@ class CollisionChecker:
             length = np.asarray(neighbour_sizes)[:, 0] + self.margin
             width = np.asarray(neighbour_sizes)[:, 1] + self.margin
         hits = poses_overlap(
-            ego[:, None], self.ego_size, neighbours, (length[None, :, None], width[None, :, None])
+            np.asarray(ego, dtype=np.float64)[:, None],
+            self.ego_size,
+            np.asarray(neighbours, dtype=np.float64),
+            (length[None, :, None], width[None, :, None]),
         )  # (N, S, T)
         mask = np.broadcast_to(present if present.ndim == 3 else present[None, :, None], (n, s, t))
-        return (hits & mask).any(axis=(1, 2))
+        return np.asarray((hits & mask).any(axis=(1, 2)), dtype=np.bool_)
 
     def logit_mask(self, *args: NDArray, **kwargs: NDArray) -> NDArray[np.float32]:
         """The paper's mask m^c: -1e8 for colliding candidates, 0 elsewhere (see :meth:`collides`)."""
