@@ -19,6 +19,28 @@ DT = 0.1
 """Seconds per policy step and per simulation step: the paper's actions are reached in 0.1 s."""
 
 
+def reject_unknown_keys(values: Mapping[str, Any], config_class: type, what: str) -> None:
+    """Raise ``ValueError`` naming every key of ``values`` that is not a field of ``config_class``.
+
+    :param values: candidate field values (for example a YAML map)
+    :param config_class: a dataclass
+    :param what: what the keys configure, for the message ("intersection config")
+    :raises ValueError: one line listing the unknown keys, each with its closest field name if any
+    """
+    known = {f.name for f in fields(config_class)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        hints = [
+            (
+                f"{key!r} (did you mean {close[0]!r}?)"
+                if (close := difflib.get_close_matches(key, known, 1))
+                else repr(key)
+            )
+            for key in unknown
+        ]
+        raise ValueError(f"unknown {what} key(s): {', '.join(hints)}")
+
+
 @dataclass(frozen=True)
 class IntersectionConfig:
     """Configuration of the intersection world shared by the planner, decider and flat envs.
@@ -146,18 +168,7 @@ class IntersectionConfig:
         :return: the validated config
         """
         merged = {**(values or {}), **overrides}
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(merged) - known)
-        if unknown:
-            hints = [
-                (
-                    f"{key!r} (did you mean {close[0]!r}?)"
-                    if (close := difflib.get_close_matches(key, known, 1))
-                    else repr(key)
-                )
-                for key in unknown
-            ]
-            raise ValueError(f"unknown intersection config key(s): {', '.join(hints)}")
+        reject_unknown_keys(merged, cls, "intersection config")
         tuples = {k: tuple(v) for k, v in merged.items() if isinstance(v, list)}
         return cls(**{**merged, **tuples})
 

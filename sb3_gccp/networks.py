@@ -40,16 +40,15 @@ features for every (goal, vehicle) pair or for the ego.
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch as th
 import torch.nn.functional as F
 from torch import nn
 
-from gccp_envs.config import IntersectionConfig
+from gccp_envs.config import IntersectionConfig, reject_unknown_keys
 from gccp_envs.observation import HISTORY_FEATURES, ROUTE_FEATURES
 
 HISTORY_LAYOUT = ("distance", "distance", "angle", "speed") * 2 + ("index",)
@@ -119,18 +118,7 @@ class EncoderConfig:
         :return: the validated config
         """
         values = dict(values or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            hints = [
-                (
-                    f"{key!r} (did you mean {close[0]!r}?)"
-                    if (close := difflib.get_close_matches(key, known, 1))
-                    else repr(key)
-                )
-                for key in unknown
-            ]
-            raise ValueError(f"unknown encoder config key(s): {', '.join(hints)}")
+        reject_unknown_keys(values, cls, "encoder config")
         if isinstance(values.get("bev_channels"), list):
             values["bev_channels"] = tuple(values["bev_channels"])
         return cls(**values)
