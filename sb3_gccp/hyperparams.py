@@ -42,7 +42,10 @@ RUN_KEYS = (
 """Keys rl-zoo reads itself instead of passing them to the algorithm."""
 UNSUPPORTED_RUN_KEYS = ("normalize", "env_wrapper", "callback", "frame_stack")
 """rl-zoo keys our own trainer does not implement (the observation is a dict of masked arrays)."""
-POLICY_ALIASES = {"MotionPlannerPolicy": "sb3_gccp.policies.MotionPlannerPolicy"}
+POLICY_ALIASES = {
+    "MotionPlannerPolicy": "sb3_gccp.policies.MotionPlannerPolicy",
+    "DecisionMakerPolicy": "sb3_gccp.policies.DecisionMakerPolicy",
+}
 """Short policy names accepted in the ``policy`` key, besides dotted paths and the algorithm's own."""
 
 
