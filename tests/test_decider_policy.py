@@ -12,7 +12,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from test_policies import TINY_ENCODER
 from torch import nn
 
-from sb3_gccp.policies import DecisionMakerPolicy, DeciderFeaturesExtractor, SubgoalHeads
+from sb3_gccp.policies import DeciderFeaturesExtractor, DecisionMakerPolicy, SubgoalHeads
 
 TINY_DECIDER = {"encoder": TINY_ENCODER, "net_arch": {"pi": [16, 16], "vf": [8, 16]}}
 
@@ -56,14 +56,15 @@ def test_default_heads_have_the_papers_depths(env):
     policy = policy_for(env)
     heads = policy.mlp_extractor
     assert isinstance(heads, SubgoalHeads)
-    linear = lambda module: [
-        m.out_features for m in module.modules() if isinstance(m, nn.Linear)
-    ]  # noqa: E731
+    def linear(module):
+        return [
+            m.out_features for m in module.modules() if isinstance(m, nn.Linear)
+        ]
     # Logit: 3-layer MLP per subgoal (two hidden layers, then the shared one-logit layer).
     assert linear(heads.policy_net) + linear(policy.action_net) == [256, 256, 1]
     # Value: 2-layer MLP per subgoal to L, then a 2-layer MLP over the flattened N x L to one value.
     assert linear(heads.subgoal_value_net) == [256, 128]
-    assert linear(heads.value_net) + [policy.value_net.out_features] == [256, 1]
+    assert [*linear(heads.value_net), policy.value_net.out_features] == [256, 1]
 
 
 def test_each_logit_depends_only_on_its_own_subgoal(env, batch):
