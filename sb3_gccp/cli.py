@@ -109,6 +109,10 @@ def _train(args: argparse.Namespace) -> None:
     from sb3_gccp.hyperparams import HyperparamsError, default_config_file
     from sb3_gccp.stages import StageRequest, latest_run, train_planner
 
+    if args.stage == "predictor":
+        _train_predictor(args)
+        return
+
     config_file = Path(args.config) if args.config else default_config_file("ppo_mask.yml")
     resume = None
     if args.resume is not None:
@@ -134,6 +138,34 @@ def _train(args: argparse.Namespace) -> None:
     except (HyperparamsError, ValueError) as err:
         raise CLIError(str(err)) from err
     print(f"saved {path}")
+
+
+def _train_predictor(args: argparse.Namespace) -> None:
+    from dataclasses import asdict
+
+    from sb3_gccp.predictor_stage import PredictorRequest, train_predictor_stage
+
+    world = asdict(load_world_config(None, args.set))
+    request = PredictorRequest(
+        planner=Path(args.planner) if args.planner else None,
+        buffer=Path(args.buffer) if args.buffer else None,
+        subgoals=args.subgoals,
+        episodes=args.episodes,
+        heldout_episodes=args.heldout_episodes,
+        gradient_steps=args.gradient_steps,
+        eval_every=args.eval_every,
+        seed=args.seed,
+        log_folder=Path(args.log_folder),
+        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        torch_threads=args.torch_threads,
+        world=world,
+        argv=["sb3_gccp", *sys.argv[1:]],
+    )
+    try:
+        run_dir = train_predictor_stage(request)
+    except (ValueError, OSError) as err:
+        raise CLIError(str(err)) from err
+    print(f"saved {run_dir}")
 
 
 def _config(args: argparse.Namespace) -> None:
@@ -189,7 +221,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train a stage from a zoo-style YAML file")
     train.add_argument(
-        "--stage", choices=["planner"], required=True, help="planner: MaskablePPO on GCCPPlanner-v0"
+        "--stage",
+        choices=["planner", "predictor"],
+        required=True,
+        help="planner: MaskablePPO on GCCPPlanner-v0; predictor: the GCCP trajectory predictor",
     )
     train.add_argument("--config", help="zoo-style YAML (default: zoo_configs/ppo_mask.yml)")
     train.add_argument("--seed", type=int, default=0)
@@ -206,6 +241,19 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--torch-threads", type=int, help="torch threads of the learner")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    predictor = train.add_argument_group("predictor stage")
+    predictor.add_argument("--planner", help="frozen motion-planner .zip that drives while collecting")
+    predictor.add_argument("--buffer", help="train on this saved replay buffer (.npz) instead of collecting")
+    predictor.add_argument(
+        "--subgoals", default="random", help="subgoals while collecting: random, farthest or a decider .zip"
+    )
+    predictor.add_argument("--episodes", type=int, default=200, help="training episodes to collect")
+    predictor.add_argument("--heldout-episodes", type=int, default=50, help="held-out episodes to collect")
+    predictor.add_argument("--gradient-steps", type=int, default=3000, help="predictor gradient steps")
+    predictor.add_argument("--eval-every", type=int, default=250, help="gradient steps between evaluations")
+    predictor.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="world config key (repeatable)"
+    )
     train.set_defaults(func=_train)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")

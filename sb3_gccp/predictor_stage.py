@@ -1,0 +1,276 @@
+"""The predictor stage: collect decisions with a frozen planner, train the predictor, report ADE/FDE.
+
+Run folder::
+
+    <log_folder>/predictor/GCCPDecider-v0_<seed>_<time>/
+        args.yml, command.txt   the request
+        buffer.npz              training decisions (EpisodeReplayBuffer)
+        heldout.npz             held-out decisions (other traffic seeds)
+        predictor.pt            the goal-conditioned predictor (load_predictor)
+        predictor_no_goal.pt    the "w/o goal condition" ablation
+        metrics.json            ADE/FDE at 1 s of learned, no-goal and CV on the held-out buffer
+        curves.csv              held-out ADE/FDE during training
+        fig7.png                ADE/FDE vs gradient steps (paper Fig. 7)
+        fig8.png                one scene, two subgoals, predicted trajectories (paper Fig. 8)
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shlex
+import sys
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+import yaml
+from torch import nn
+from tqdm import tqdm
+
+from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.option_env import GCCPDeciderEnv
+from gccp_envs.scripted import FarthestSubgoalDecider
+from sb3_gccp.collision import CollisionChecker
+from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.prediction import (
+    ConstantVelocityPredictor,
+    GCCPMask,
+    PredictorConfig,
+    TrajectoryPredictor,
+    save_predictor,
+)
+from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors
+from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions
+
+DECIDER_ENV_ID = "GCCPDecider-v0"
+HELDOUT_SEED_OFFSET = 1_000_000
+"""Held-out episodes draw their traffic seeds from ``seed + HELDOUT_SEED_OFFSET``."""
+
+
+@dataclass
+class PredictorRequest:
+    """What the user asked of the predictor stage."""
+
+    planner: Path | None = None
+    """Frozen motion-planner ``.zip`` that drives the ego while decisions are collected."""
+    buffer: Path | None = None
+    """A saved replay buffer to train on instead of collecting (its last ``heldout_share`` is held out)."""
+    subgoals: str = "random"
+    """How subgoals are chosen while collecting: 'random', 'farthest', or a decider ``.zip``."""
+    episodes: int = 200
+    heldout_episodes: int = 50
+    heldout_share: float = 0.2
+    gradient_steps: int = 3000
+    eval_every: int = 250
+    batch_size: int = 64
+    learning_rate: float = 1e-4
+    seed: int = 0
+    log_folder: Path = Path("runs")
+    progress_bar: bool = True
+    torch_threads: int | None = None
+    world: dict[str, Any] = field(default_factory=dict)
+    argv: list[str] = field(default_factory=lambda: list(sys.argv))
+
+
+def subgoal_chooser(
+    spec: str, rng: np.random.Generator
+) -> Callable[[dict[str, np.ndarray], np.ndarray], int]:
+    """The subgoal policy named by ``spec``: 'random' (uniform over allowed), 'farthest' or a ``.zip``."""
+    if spec == "random":
+        return lambda obs, mask: int(rng.choice(np.flatnonzero(mask)))
+    if spec == "farthest":
+        return FarthestSubgoalDecider()
+    path = Path(spec)
+    if not path.is_file():
+        raise ValueError(f"--subgoals must be 'random', 'farthest' or a decider .zip; no file {spec}")
+    return FrozenPolicy(path, deterministic=False)
+
+
+def train_predictor_stage(request: PredictorRequest) -> Path:
+    """Run the predictor stage; return the run folder (see the module docstring)."""
+    if request.torch_threads is not None:
+        th.set_num_threads(request.torch_threads)
+    if request.planner is None and request.buffer is None:
+        raise ValueError("give --planner (to collect decisions) or --buffer (a saved replay buffer)")
+    for name in ("planner", "buffer"):
+        path = getattr(request, name)
+        if path is not None and not Path(path).is_file():
+            raise ValueError(f"--{name}: no such file: {path}")
+    if request.gradient_steps < 1 or request.eval_every < 1 or request.episodes < 1:
+        raise ValueError("--gradient-steps, --eval-every and --episodes must be positive")
+    world = IntersectionConfig.from_dict(request.world)
+    run_dir = (
+        request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    )
+    run_dir.mkdir(parents=True, exist_ok=False)
+    (run_dir / "command.txt").write_text(shlex.join(request.argv) + "\n")
+    args = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(request).items() if k != "argv"}
+    (run_dir / "args.yml").write_text(yaml.safe_dump(args, sort_keys=False))
+
+    rng = np.random.default_rng(request.seed)
+    th.manual_seed(request.seed)
+    train, heldout = _data(request, world, rng)
+    train.save(run_dir / "buffer.npz")
+    heldout.save(run_dir / "heldout.npz")
+    print(f"decisions: {len(train)} for training, {len(heldout)} held out")
+
+    predictors: dict[str, nn.Module] = {}
+    curves: list[dict[str, float]] = []
+    for name, goal_condition in (("learned", True), ("no_goal", False)):
+        predictor = TrajectoryPredictor(PredictorConfig(goal_condition=goal_condition))
+        trainer = PredictorTrainer(predictor, request.learning_rate, request.batch_size)
+        steps = tqdm(
+            range(0, request.gradient_steps, request.eval_every),
+            disable=not request.progress_bar,
+            desc=f"training {name}",
+        )
+        for start in steps:
+            n = min(request.eval_every, request.gradient_steps - start)
+            loss = trainer.train_steps(train, n, rng)
+            errors = displacement_errors(predictor, heldout)
+            curves.append({"predictor": name, "step": start + n, "loss": loss, **errors})  # type: ignore[dict-item]
+        save_predictor(predictor, run_dir / ("predictor.pt" if goal_condition else "predictor_no_goal.pt"))
+        predictors[name] = predictor
+    predictors["cv"] = ConstantVelocityPredictor()
+    metrics = {name: displacement_errors(p, heldout) for name, p in predictors.items()}
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    with open(run_dir / "curves.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(curves[0]))
+        writer.writeheader()
+        writer.writerows(curves)
+    print(format_errors(metrics))
+    plot_errors(curves, metrics["cv"], run_dir / "fig7.png")
+    plot_scene(predictors["learned"], world, request.seed, run_dir / "fig8.png", request.planner)
+    return run_dir
+
+
+def _data(
+    request: PredictorRequest, world: IntersectionConfig, rng: np.random.Generator
+) -> tuple[EpisodeReplayBuffer, EpisodeReplayBuffer]:
+    """Training and held-out decisions: loaded and split, or collected on disjoint traffic seeds."""
+    if request.buffer is not None:
+        loaded = EpisodeReplayBuffer.load(request.buffer)
+        arrays = loaded.stored()
+        split = round(len(loaded) * (1 - request.heldout_share))
+        if not 0 < split < len(loaded):
+            raise ValueError(f"--buffer holds {len(loaded)} decisions: too few to hold some out")
+        return _buffer_of(arrays, slice(0, split)), _buffer_of(arrays, slice(split, None))
+    assert request.planner is not None
+    env = GCCPDeciderEnv(config=world, planner=FrozenPolicy(request.planner, threads=None))
+    choose = subgoal_chooser(request.subgoals, rng)
+    per_episode = int(np.ceil(world.duration / (world.decision_period * DT))) + 1
+    train = EpisodeReplayBuffer(capacity=request.episodes * per_episode)
+    heldout = EpisodeReplayBuffer(capacity=max(request.heldout_episodes, 1) * per_episode)
+    collect_decisions(env, choose, request.episodes, train, rng, progress=request.progress_bar)
+    held_rng = np.random.default_rng(request.seed + HELDOUT_SEED_OFFSET)
+    collect_decisions(env, choose, request.heldout_episodes, heldout, held_rng, progress=request.progress_bar)
+    return train, heldout
+
+
+def _buffer_of(arrays: Mapping[str, np.ndarray], rows: slice) -> EpisodeReplayBuffer:
+    """A replay buffer holding ``rows`` of stored decision arrays."""
+    part = {key: value[rows] for key, value in arrays.items()}
+    buffer = EpisodeReplayBuffer(capacity=len(part["future"]))
+    for i in range(len(part["future"])):
+        buffer.add(
+            {key: part[key][i] for key in part},
+            part["subgoal"][i],
+            part["future"][i],
+            part["future_mask"][i],
+        )
+    buffer.end_episode()
+    return buffer
+
+
+def format_errors(metrics: Mapping[str, Mapping[str, float]]) -> str:
+    """A markdown table of ADE/FDE at 1 s per predictor."""
+    names = {"learned": "goal-conditioned (ours)", "no_goal": "w/o goal condition", "cv": "constant velocity"}
+    lines = [
+        "| predictor | ADE [m] | FDE [m] | ego ADE | ego FDE | neighbour ADE | neighbour FDE |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for key, m in metrics.items():
+        cells = [m[k] for k in ("ade", "fde", "ego_ade", "ego_fde", "neighbour_ade", "neighbour_fde")]
+        lines.append(f"| {names.get(key, key)} | " + " | ".join(f"{c:.3f}" for c in cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_errors(curves: list[dict[str, Any]], cv: Mapping[str, float], path: Path) -> None:
+    """ADE and FDE on the held-out buffer vs gradient steps, learned vs no-goal, CV as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for ax, metric in zip(axes, ("ade", "fde"), strict=True):
+        for name, label in (("learned", "goal-conditioned"), ("no_goal", "w/o goal condition")):
+            rows = [c for c in curves if c["predictor"] == name]
+            ax.plot([r["step"] for r in rows], [r[metric] for r in rows], label=label)
+        ax.axhline(cv[metric], color="grey", linestyle="--", label="constant velocity")
+        ax.set_xlabel("gradient steps")
+        ax.set_ylabel(f"{metric.upper()} at 1 s [m]")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_scene(
+    predictor: nn.Module, world: IntersectionConfig, seed: int, path: Path, planner: Path | None
+) -> None:
+    """Paper Fig. 8: one scene with neighbours, the predicted futures under two subgoals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env = GCCPDeciderEnv(config=world, planner=FrozenPolicy(planner, threads=None) if planner else None)
+    gccp = GCCPMask(predictor, CollisionChecker())
+    obs: dict[str, np.ndarray] = {}
+    for k in range(50):  # the first decision with at least two neighbours ahead
+        obs, _ = env.reset(seed=seed + k)
+        if gccp.present(obs).sum() >= 2:
+            break
+    future = gccp.predict(obs)
+    allowed = gccp(obs)
+    subgoals = obs["subgoals"]
+    pair = (int(np.argmin(subgoals[:, 0])), int(np.argmax(subgoals[:, 0])))
+    extent = world.bev_extent / 2
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    for ax, index in zip(axes, pair, strict=True):
+        ax.imshow(obs["bev"][0], cmap="Greys", vmin=-1, vmax=2, extent=(-extent, extent, -extent, extent))
+        present = obs["history_mask"].any(-1)
+        for v in np.flatnonzero(present):
+            x, y, heading = (0.0, 0.0, 0.0) if v == 0 else obs["history"][v, -1, 4:7]
+            _draw_box(ax, x, y, heading, "tab:green" if v == 0 else "tab:blue")
+            track = future[index, v]
+            ax.plot(track[:, 1], track[:, 0], ".-", color="tab:green" if v == 0 else "tab:orange", ms=3)
+        ax.plot(subgoals[:, 1], subgoals[:, 0], "o", color="tab:blue", ms=4, alpha=0.4)
+        ax.plot(subgoals[index, 1], subgoals[index, 0], "*", color="gold", ms=14, mec="black")
+        verdict = "safe" if allowed[index] else "masked: predicted collision"
+        ax.set_title(f"subgoal {index} ({subgoals[index, 0]:.1f} m ahead): {verdict}", fontsize=9)
+        ax.set_xlim(-extent, extent)
+        ax.set_ylim(-extent, extent)
+        ax.set_xlabel("right of ego [m]")
+        ax.set_ylabel("ahead of ego [m]")
+    fig.suptitle("Goal-conditioned predictions: ego (green), neighbours (orange), 1 s at 0.1 s")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _draw_box(ax: Any, x: float, y: float, heading: float, color: str) -> None:
+    """A 5 m x 2 m vehicle box in the (right, ahead) plot axes."""
+    from matplotlib.patches import Polygon
+
+    from gccp_envs.geometry import box_corners
+
+    corners = box_corners(x, y, heading, 5.0, 2.0)
+    ax.add_patch(Polygon(corners[:, ::-1], closed=True, color=color, alpha=0.8))
