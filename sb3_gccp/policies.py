@@ -89,9 +89,7 @@ class MotionPlannerPolicy(MaskableActorCriticPolicy):
         encoder: Mapping[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
-        features_extractor_kwargs = dict(features_extractor_kwargs or {})
-        if encoder is not None:
-            features_extractor_kwargs["encoder"] = {**features_extractor_kwargs.get("encoder", {}), **encoder}
+        features_extractor_kwargs = _with_encoder(features_extractor_kwargs, encoder)
         super().__init__(
             observation_space,
             action_space,
@@ -225,9 +223,7 @@ class DecisionMakerPolicy(MaskableActorCriticPolicy):
         encoder: Mapping[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
-        features_extractor_kwargs = dict(features_extractor_kwargs or {})
-        if encoder is not None:
-            features_extractor_kwargs["encoder"] = {**features_extractor_kwargs.get("encoder", {}), **encoder}
+        features_extractor_kwargs = _with_encoder(features_extractor_kwargs, encoder)
         if isinstance(net_arch, list) or kwargs.get("share_features_extractor") is False:
             raise ValueError(
                 "DecisionMakerPolicy needs net_arch {pi: [...], vf: [h_subgoal, h_value]} "
@@ -285,3 +281,13 @@ def _scene_encoder(observation_space: spaces.Dict, config: EncoderConfig) -> Sce
     return SceneEncoder(
         config, history_features=history[-1], route_features=routes[-1], bev_shape=(bev[0], bev[1], bev[2])
     )
+
+
+def _with_encoder(
+    features_extractor_kwargs: dict[str, Any] | None, encoder: Mapping[str, Any] | None
+) -> dict[str, Any]:
+    """``features_extractor_kwargs`` with the policy's ``encoder`` fields merged into its ``encoder``."""
+    kwargs = dict(features_extractor_kwargs or {})
+    if encoder is not None:
+        kwargs["encoder"] = {**kwargs.get("encoder", {}), **encoder}
+    return kwargs

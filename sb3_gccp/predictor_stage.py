@@ -85,10 +85,7 @@ def subgoal_chooser(
         return lambda obs, mask: int(rng.choice(np.flatnonzero(mask)))
     if spec == "farthest":
         return FarthestSubgoalDecider()
-    path = Path(spec)
-    if not path.is_file():
-        raise ValueError(f"--subgoals must be 'random', 'farthest' or a decider .zip; no file {spec}")
-    return FrozenPolicy(path, deterministic=False)
+    return FrozenPolicy(spec, deterministic=False)
 
 
 def train_predictor_stage(request: PredictorRequest) -> Path:
@@ -103,6 +100,10 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
             raise ValueError(f"--{name}: no such file: {path}")
     if request.gradient_steps < 1 or request.eval_every < 1 or request.episodes < 1:
         raise ValueError("--gradient-steps, --eval-every and --episodes must be positive")
+    if request.subgoals not in ("random", "farthest") and not Path(request.subgoals).is_file():
+        raise ValueError(
+            f"--subgoals must be 'random', 'farthest' or a decider .zip; no file {request.subgoals}"
+        )
     world = IntersectionConfig.from_dict(request.world)
     run_dir = (
         request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"

@@ -9,11 +9,12 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import pytest
+import torch as th
 from helpers import EMPTY
 from hypothesis import HealthCheck, Phase, settings
 
@@ -60,3 +61,12 @@ def make_world() -> Callable[..., IntersectionWorld]:
 def layout() -> IntersectionLayout:
     """The default two-lane junction (built once per process)."""
     return layout_for(IntersectionConfig())
+
+
+@pytest.fixture(autouse=True)
+def one_thread() -> Iterator[None]:
+    """One torch thread per test: tiny networks gain nothing from two, and a busy machine makes them crawl."""
+    threads = th.get_num_threads()
+    th.set_num_threads(1)
+    yield
+    th.set_num_threads(threads)

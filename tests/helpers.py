@@ -60,3 +60,7 @@ TINY_PLANNER_HYPERPARAMS = {
     }
 }
 """A planner run that takes seconds: tiny MLP, 32 steps, an empty road, 2 s episodes."""
+
+
+TINY_ENCODER = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
+"""Encoder config fields of a tiny scene encoder, for fast network tests."""

@@ -56,10 +56,10 @@ def test_default_heads_have_the_papers_depths(env):
     policy = policy_for(env)
     heads = policy.mlp_extractor
     assert isinstance(heads, SubgoalHeads)
+
     def linear(module):
-        return [
-            m.out_features for m in module.modules() if isinstance(m, nn.Linear)
-        ]
+        return [m.out_features for m in module.modules() if isinstance(m, nn.Linear)]
+
     # Logit: 3-layer MLP per subgoal (two hidden layers, then the shared one-logit layer).
     assert linear(heads.policy_net) + linear(policy.action_net) == [256, 256, 1]
     # Value: 2-layer MLP per subgoal to L, then a 2-layer MLP over the flattened N x L to one value.

@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from helpers import TINY_ENCODER
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.preprocessing import is_image_space, preprocess_obs
 from stable_baselines3.common.utils import obs_as_tensor
@@ -17,7 +18,6 @@ from torch import nn
 
 from sb3_gccp.policies import MotionPlannerPolicy, PlannerFeaturesExtractor
 
-TINY_ENCODER = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
 TINY_POLICY = {"encoder": TINY_ENCODER, "net_arch": {"pi": [16], "vf": [16]}}
 WORLD = {"spawn_probability": 0.0}
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from helpers import TINY_ENCODER as TINY
 from torch import nn
 
 from gccp_envs.config import DT
@@ -20,17 +19,7 @@ from sb3_gccp.prediction import (
     save_predictor,
 )
 
-TINY = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
 V, T_H, T_F, G = 6, 10, 10, 12
-
-
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """One torch thread: tiny networks gain nothing from two, and a busy machine makes them crawl."""
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
 
 
 def tiny_predictor(goal_condition: bool = True, seed: int = 0) -> TrajectoryPredictor:

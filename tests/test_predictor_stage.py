@@ -89,3 +89,4 @@ def test_bad_predictor_stage_input_is_one_line(tmp_path, planner, args, message)
     result = sb3_gccp("train", "--stage", "predictor", *args, "--episodes", "1", cwd=tmp_path)
     assert result.returncode == 2
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "runs").exists()  # nothing half-made left behind

@@ -2,28 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 import torch.nn.functional as F
+from helpers import TINY_ENCODER as TINY
 
 from sb3_gccp.prediction import ConstantVelocityPredictor, PredictorConfig, TrajectoryPredictor
 from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors, loss_mask, prediction_loss
 from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions, to_torch
-
-TINY = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
-
-
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """One torch thread: tiny networks gain nothing from two, and a busy machine makes them crawl."""
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
