@@ -87,6 +87,14 @@ class EgoMotion:
             poses[action] = (nxt.x, nxt.y, nxt.heading)
         return poses
 
+    def rollout(self, state: EgoState, action: int, steps: int) -> FloatArray:
+        """World poses (x, y, heading) of ``steps`` steps holding ``action``, (steps, 3)."""
+        poses = np.empty((steps, 3))
+        for k in range(steps):
+            state = self.step(state, action)
+            poses[k] = (state.x, state.y, state.heading)
+        return poses
+
     def step(self, state: EgoState, action: int) -> EgoState:
         """The ego state after one step of ``action``."""
         (dx, dy, dheading), speed = self.pose_change(state.speed, action)

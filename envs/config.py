@@ -97,6 +97,9 @@ class IntersectionConfig:
     """Curvature [1/m] of 'slowly turn left/right' (a left turn needs 1/15)."""
     quick_turn_curvature: float = 1.0 / 6.0
     """Curvature [1/m] of 'quickly turn left/right' (a right turn needs 1/7)."""
+    mask_lookahead: int = 5
+    """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
+    and some action held for the remaining steps keeps it there (1: the next step only)."""
 
     # --- state (paper III-B-1) -------------------------------------------------------------------
     num_neighbours: int = 5
@@ -208,6 +211,7 @@ def _validate(config: IntersectionConfig) -> None:
         "decision_period",
         "prediction_horizon",
         "max_vehicles",
+        "mask_lookahead",
     )
     for name in positive_ints:
         value = getattr(config, name)

@@ -177,9 +177,25 @@ class IntersectionWorld:
         return np.all(self.layout.is_drivable(corners[..., 0], corners[..., 1]), axis=-1)
 
     def action_mask(self) -> NDArray[np.bool_]:
-        """Actions that keep the ego on the road for the next step; all of them if none does."""
-        mask = self._on_road(self.motion.all_next_poses(self.ego))
-        return mask if mask.any() else np.ones_like(mask)
+        """Actions after which the ego can stay on the road.
+
+        An action is allowed if the ego is on the road after it and, for ``mask_lookahead - 1`` more
+        steps, some action held all along keeps it there. If no action passes, the actions that keep
+        it on the road for the next step are allowed; if none does either, all of them.
+        """
+        motion, n = self.motion, len(self.motion.curvature)
+        next_states = [motion.step(self.ego, action) for action in range(n)]
+        next_step = self._on_road(np.array([(s.x, s.y, s.heading) for s in next_states]))
+        later = self.config.mask_lookahead - 1
+        mask = next_step.copy()
+        if later > 0:
+            for action in np.flatnonzero(next_step):
+                mask[action] = any(
+                    self._on_road(motion.rollout(next_states[action], hold, later)).all() for hold in range(n)
+                )
+        if mask.any():
+            return mask
+        return next_step if next_step.any() else np.ones_like(next_step)
 
     def ego_routes(self) -> tuple[list[int], FloatArray]:
         """The ego's routes towards its task goal (see :meth:`_find_routes`), cached per step."""

@@ -119,6 +119,22 @@ def test_action_mask_keeps_the_ego_on_the_road(make_world):
         assert world.step(action).offroad != mask[action]
 
 
+def test_action_mask_looks_ahead_for_a_way_to_stay_on_the_road(make_world):
+    # Near the right kerb, heading 17 degrees towards it: every action keeps the car on the road for
+    # one step, but after a quick right turn no action held for 0.4 s more avoids the kerb.
+    state = (5.75, 50.0, -np.pi / 2 + 0.3, 8.0)
+    one_step = make_world(mask_lookahead=1)
+    place_ego(one_step, *state)
+    assert one_step.action_mask().all()
+    world = make_world()
+    place_ego(world, *state)
+    np.testing.assert_array_equal(world.action_mask(), [True] * 5 + [False])
+    for hold in EgoAction:
+        place_ego(world, *state)
+        outcomes = [world.step(EgoAction.QUICKLY_TURN_RIGHT)] + [world.step(hold) for _ in range(4)]
+        assert any(o.offroad for o in outcomes), hold
+
+
 def test_action_mask_all_allowed_in_the_middle_of_the_road(make_world):
     world = make_world()
     place_ego(world, 4.0, 50.0, -np.pi / 2, 8.0)
