@@ -4,7 +4,10 @@
    for ``--hold-steps`` (3 s by default, so that even the farthest candidate is within reach): the share
    of subgoals reached, over the subgoals whose hold was not cut short by a collision or the time
    limit, and the share of episodes that end off the road.
-2. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
+2. Stopping: on empty roads the planner is given the "hold" subgoal (the candidate nearest the ego)
+   and keeps it for 4 s: the share of episodes where it stands (below 0.5 m/s) at the end and did
+   not leave the road. A decision-maker can only yield with a planner that stops.
+3. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
    on roads without traffic: the share of episodes that complete their task.
 
 Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
@@ -29,7 +32,9 @@ from sb3_gccp.frozen import FrozenPolicy
 
 def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps: int) -> dict[str, float]:
     """Reach and off-road rates with uniformly drawn subgoals, over all tasks."""
-    env = GCCPPlannerEnv(decision_period=hold_steps, prediction_horizon=min(10, hold_steps))
+    env = GCCPPlannerEnv(
+        decision_period=hold_steps, prediction_horizon=min(10, hold_steps), hold_probability=0.0
+    )
     reached = counted = offroad = total = 0
     for task in TASKS:
         for k in tqdm(range(episodes), desc=f"subgoals {task}", leave=False):
@@ -52,6 +57,22 @@ def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps
     return {"subgoal_reach": reached / max(counted, 1), "subgoals": counted, "offroad": offroad / total}
 
 
+def stopping(planner: FrozenPolicy, episodes: int, seed: int, steps: int = 40) -> float:
+    """Share of empty-road episodes in which the planner, held at the nearest candidate, stands still
+    on the road after ``steps`` steps."""
+    env = GCCPPlannerEnv(spawn_probability=0.0, hold_probability=1.0, hold_continue=1.0)
+    stopped = 0
+    for task in TASKS:
+        for k in range(episodes):
+            obs, _ = env.reset(seed=seed + k, options={"task": task})
+            for _ in range(steps):
+                obs, _, terminated, truncated, _ = env.step(planner(obs, env.action_masks()))
+                if terminated or truncated:
+                    break
+            stopped += not (terminated or truncated) and env.world.ego.speed < 0.5
+    return stopped / (len(TASKS) * episodes)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="the planner's SB3 .zip")
@@ -61,6 +82,7 @@ def main() -> None:
     args = parser.parse_args()
     planner = FrozenPolicy(args.model)
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps)
+    stop_rate = stopping(planner, args.episodes, args.seed)
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
@@ -70,6 +92,7 @@ def main() -> None:
         f"{args.hold_steps} steps (default traffic)"
     )
     print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
+    print(f"stop_rate {stop_rate:.3f} (held at the nearest candidate for 4 s, empty road)")
     for task in TASKS:
         rows = [r for r in results if r.task == task]
         print(f"  {task:<9} completion {sum(r.success for r in rows) / len(rows):.3f} (empty road)")

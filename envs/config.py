@@ -134,6 +134,11 @@ class IntersectionConfig:
     """T_m: motion-planner steps per decision (paper: 10)."""
     prediction_horizon: int = 10
     """T_f: future poses predicted per vehicle, at 0.1 s (paper: 10)."""
+    hold_probability: float = 0.1
+    """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
+    planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
+    hold_continue: float = 0.7
+    """Planner env: chance that a hold subgoal is drawn again at the next redraw (mean hold 3.3 s)."""
 
     # --- motion-planner reward (paper Eq. r^m) ---------------------------------------------------
     r_time: float = -0.05
@@ -240,8 +245,10 @@ def _validate(config: IntersectionConfig) -> None:
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
-    if not 0.0 <= config.spawn_probability <= 1.0:
-        raise ValueError(f"spawn_probability must be in [0, 1], got {config.spawn_probability!r}")
+    for name in ("spawn_probability", "hold_probability", "hold_continue"):
+        value = getattr(config, name)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {value!r}")
     for name in ("ego_start_distance", "ego_start_speed", "npc_speed_range", "npc_time_headway"):
         low_high = getattr(config, name)
         if len(low_high) != 2 or not 0 <= low_high[0] <= low_high[1]:

@@ -1,7 +1,8 @@
 """``GCCPPlanner-v0``: the motion-planner's subgoal-conditioned env (paper III-D, r^m).
 
-A subgoal is drawn uniformly from the N candidates at reset and every T_m steps; the planner drives
-towards it with the 6 discrete actions. The episode ends on a collision, leaving the road, reaching
+A subgoal is drawn from the N candidates at reset and every T_m steps (uniformly, or a "hold" at the
+candidate nearest the ego; see ``hold_probability``); the planner drives towards it with the 6
+discrete actions. The episode ends on a collision, leaving the road, reaching
 the task's exit (or another exit), or the time limit.
 """
 
@@ -26,18 +27,33 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         self.action_space = spaces.Discrete(6)
         self.observation_space = spaces.Dict({**self._state_spaces, "goal": pose_space()})
         self._arrived = False
+        self._holding = False
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Obs, dict[str, Any]]:
         """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
         self._reset_world(seed, options)
+        self._holding = False
         self._choose_goal()
         return self._observe(), {"task": self.world.task}
 
     def _choose_goal(self) -> None:
+        """A candidate drawn uniformly or, with ``hold_probability``, a hold: the candidate nearest the
+        ego, kept for the next period with ``hold_continue``. Holds teach the planner to stop where the
+        decision-maker holds it (the nearest lattice point stays the same while the ego waits)."""
+        cfg = self.config
+        if self._holding and self.np_random.random() < cfg.hold_continue:
+            self._arrived = False
+            return  # keep holding the same point
         candidates = self.world.subgoal_candidates()
-        self._subgoal = candidates[int(self.np_random.integers(len(candidates)))].copy()
+        self._holding = bool(self.np_random.random() < cfg.hold_probability)
+        if self._holding:
+            distances = np.hypot(candidates[:, 0] - self.world.ego.x, candidates[:, 1] - self.world.ego.y)
+            index = int(np.argmin(distances))
+        else:
+            index = int(self.np_random.integers(len(candidates)))
+        self._subgoal = candidates[index].copy()
         self._arrived = False
 
     def _observe(self) -> Obs:

@@ -237,6 +237,31 @@ def test_planner_goal_is_a_candidate_and_changes_every_decision_period():
     np.testing.assert_allclose(obs["goal"], env.observer.to_ego(env._subgoal))
 
 
+def test_planner_hold_subgoal_is_the_nearest_candidate_and_is_kept():
+    env = make(
+        "GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=1.0, hold_continue=1.0
+    )
+    env.reset(seed=1)
+    world = env.world
+    candidates = world.subgoal_candidates()
+    nearest = np.argmin(np.hypot(candidates[:, 0] - world.ego.x, candidates[:, 1] - world.ego.y))
+    goal = env._subgoal.copy()
+    np.testing.assert_array_equal(goal, candidates[nearest])
+    for _ in range(25):  # past two redraws, driving on: the held point stays
+        env.step(EgoAction.KEEP_DIRECTION)
+        np.testing.assert_array_equal(env._subgoal, goal)
+
+
+def test_planner_without_holds_draws_new_subgoals():
+    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=0.0)
+    env.reset(seed=1)
+    goals = set()
+    for _ in range(60):
+        env.step(EgoAction.KEEP_DIRECTION)
+        goals.add(tuple(env._subgoal))
+    assert len(goals) >= 3
+
+
 def test_planner_action_masks_follow_the_world(make_world):
     env = make("GCCPPlanner-v0", spawn_probability=0.0)
     env.reset(seed=0)
