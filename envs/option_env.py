@@ -1,15 +1,21 @@
 """``GCCPDecider-v0``: the decision-maker's option env (paper III-D, r^d, Algorithm 1).
 
 The action is a subgoal index. The env runs a motion-planner towards that subgoal for T_m steps
-(fewer if the episode ends) and returns the decision-maker's reward. ``action_masks()`` asks a mask
+(fewer if the episode ends) and returns the decision-maker's reward. The planner is any callable, or
+a trained MaskablePPO ``.zip`` given as ``planner_path`` (loaded once per process, called with a
+direct torch forward). ``action_masks()`` asks a mask
 function (the GCCP module) which subgoals are safe; without one, or while masks are off, all are.
-Each step's ``info`` carries the ground-truth future of the decision just taken (``future``,
-``future_mask``: the next T_f poses of the ego and the neighbours of the observation, ego frame).
+Each step's ``info`` carries what the predictor's replay buffer needs, as raw features (never
+normalised): the observation the decision was made from (``decision_obs``), the chosen subgoal in
+its ego frame (``subgoal``) and the ground-truth future of the decision (``future``, ``future_mask``:
+the next T_f poses of the ego and the neighbours of that observation), plus ``masked_share``, the
+share of candidates the mask function ruled out.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +37,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
     """Option env whose action is one of the N subgoal candidates.
 
     :param planner: the motion-planner run for each option; default :class:`ScriptedPlanner`
+    :param planner_path: a trained motion-planner (MaskablePPO ``.zip``) instead of ``planner``
     :param mask_fn: the subgoal mask (GCCP); default none (every subgoal allowed)
     """
 
@@ -38,10 +45,19 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self,
         *args: Any,
         planner: Planner | None = None,
+        planner_path: str | Path | None = None,
         mask_fn: MaskFunction | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
+        if planner is not None and planner_path is not None:
+            raise ValueError("give either planner or planner_path, not both")
+        if planner_path is not None:
+            if not Path(planner_path).is_file():
+                raise FileNotFoundError(f"planner not found: {planner_path}")
+            from sb3_gccp.frozen import load_frozen_policy
+
+            planner = load_frozen_policy(str(Path(planner_path).resolve()))
         n = self.config.num_subgoals
         self.action_space = spaces.Discrete(n)
         self.observation_space = spaces.Dict(
@@ -62,6 +78,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         """Start an episode; ``options={"task": "left"}`` picks the task of this episode."""
         self._reset_world(seed, options)
         self._subgoal = None
+        self._masked = None
         self._last_obs = self._observe()
         return self._last_obs, {"task": self.world.task}
 
@@ -91,6 +108,8 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         """Run the planner towards subgoal ``action`` for up to T_m steps."""
         index = self._check_action(action)
         world, cfg = self.world, self.config
+        decision_obs = self._last_obs if self._last_obs is not None else self._observe()
+        masked_share = float(self._masked.mean()) if self._masked is not None else 0.0
         self._subgoal = world.subgoal_candidates()[index].copy()
         record = world.begin_decision()
         distance = goal_errors(world.ego, self._subgoal)[0]
@@ -116,6 +135,9 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             "reward_terms": terms,
             "subgoal_reached": reached,
             "planner_return": planner_return,
+            "decision_obs": decision_obs,
+            "subgoal": decision_obs["subgoals"][index],
+            "masked_share": masked_share,
             "future": future,
             "future_mask": future_mask,
         }

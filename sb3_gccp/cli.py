@@ -5,7 +5,9 @@ Commands:
 - ``sb3_gccp rollout``: play seeded episodes with the scripted hierarchy (farthest-subgoal
   decision-maker + pure-pursuit motion-planner) and print the paper's table; optional GIF of one episode.
 - ``sb3_gccp config``: print every world config key with its value and meaning.
-- ``sb3_gccp train --stage planner``: train the motion-planner (MaskablePPO) from a zoo-style YAML file.
+- ``sb3_gccp train --stage planner|decider|predictor|all``: train a stage from a zoo-style YAML file
+  (``all``: the planner, then the decision-maker with GCCP on the side).
+- ``sb3_gccp evaluate``: run a trained hierarchy on seeded traffic and print the paper's table.
 
 Errors in the input are reported on one line and exit with status 2.
 """
@@ -43,15 +45,22 @@ def load_world_config(path: str | None, assignments: list[str]) -> IntersectionC
             values.update(read_yaml_mapping(path, "config file"))
         except HyperparamsError as err:
             raise CLIError(str(err)) from err
+    values.update(parse_assignments(assignments))
+    try:
+        return IntersectionConfig.from_dict(values)
+    except (ValueError, TypeError) as err:
+        raise CLIError(str(err)) from err
+
+
+def parse_assignments(assignments: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings as a mapping, values read as YAML scalars or lists."""
+    values: dict[str, Any] = {}
     for item in assignments:
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise CLIError(f"--set expects KEY=VALUE, got {item!r}")
         values[key.strip()] = yaml.safe_load(raw)
-    try:
-        return IntersectionConfig.from_dict(values)
-    except (ValueError, TypeError) as err:
-        raise CLIError(str(err)) from err
+    return values
 
 
 def parse_tasks(text: str) -> list[str]:
@@ -106,13 +115,17 @@ def _write_gif(env: Any, policy: Any, task: str, seed: int, path: str, run_episo
 
 
 def _train(args: argparse.Namespace) -> None:
+    from sb3_gccp.decider_stage import train_all, train_decider
     from sb3_gccp.hyperparams import HyperparamsError, default_config_file
     from sb3_gccp.stages import StageRequest, latest_run, train_planner
 
     if args.stage == "predictor":
         _train_predictor(args)
         return
-
+    if args.stage == "decider" and args.resume is None and not args.planner:
+        raise CLIError("the decider stage needs --planner PATH.zip (a trained motion-planner)")
+    if args.stage == "all" and args.resume is not None:
+        raise CLIError("--resume works per stage: use --stage planner or --stage decider with --resume")
     config_file = Path(args.config) if args.config else default_config_file("ppo_mask.yml")
     resume = None
     if args.resume is not None:
@@ -131,13 +144,46 @@ def _train(args: argparse.Namespace) -> None:
         verbose=args.verbose,
         save_freq=args.save_freq,
         torch_threads=args.torch_threads,
+        planner=Path(args.planner) if args.planner else None,
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:
-        path = train_planner(request)
-    except (HyperparamsError, ValueError) as err:
+        if args.stage == "planner":
+            print(f"saved {train_planner(request)}")
+        elif args.stage == "decider":
+            print(f"saved {train_decider(request)}")
+        else:
+            planner, run_dir = train_all(request)
+            print(f"saved {planner}")
+            print(f"saved {run_dir}")
+    except (HyperparamsError, ValueError, OSError) as err:
         raise CLIError(str(err)) from err
-    print(f"saved {path}")
+
+
+def _evaluate(args: argparse.Namespace) -> None:
+    from sb3_gccp.evaluation import evaluate, format_table, summarize
+    from sb3_gccp.hierarchy import load_hierarchy
+
+    tasks = parse_tasks(args.tasks)
+    if args.episodes_per_task < 1:
+        raise CLIError("--episodes-per-task must be at least 1")
+    try:
+        hierarchy = load_hierarchy(args.model)
+        env = hierarchy.make_env(parse_assignments(args.set))
+        decider = hierarchy.decider_policy()
+    except (ValueError, TypeError, OSError) as err:
+        raise CLIError(str(err)) from err
+    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=sys.stderr.isatty())
+    table = summarize(results)
+    print(
+        f"hierarchy {args.model} (GCCP: {hierarchy.predictor}), "
+        f"{args.episodes_per_task} episodes per task from seed {args.seed}"
+    )
+    print(format_table(table))
+    if args.json:
+        Path(args.json).write_text(
+            json.dumps({"table": table, "episodes": [dataclasses.asdict(r) for r in results]}, indent=2)
+        )
 
 
 def _train_predictor(args: argparse.Namespace) -> None:
@@ -222,9 +268,11 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="train a stage from a zoo-style YAML file")
     train.add_argument(
         "--stage",
-        choices=["planner", "predictor"],
+        choices=["planner", "decider", "predictor", "all"],
         required=True,
-        help="planner: MaskablePPO on GCCPPlanner-v0; predictor: the GCCP trajectory predictor",
+        help="planner: MaskablePPO on GCCPPlanner-v0; decider: MaskablePPO on GCCPDecider-v0 with the "
+        "frozen --planner and GCCP on the side; predictor: the GCCP trajectory predictor alone; "
+        "all: planner then decider",
     )
     train.add_argument("--config", help="zoo-style YAML (default: zoo_configs/ppo_mask.yml)")
     train.add_argument("--seed", type=int, default=0)
@@ -241,8 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--torch-threads", type=int, help="torch threads of the learner")
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    train.add_argument("--planner", help="frozen motion-planner .zip (decider and predictor stages)")
     predictor = train.add_argument_group("predictor stage")
-    predictor.add_argument("--planner", help="frozen motion-planner .zip that drives while collecting")
     predictor.add_argument("--buffer", help="train on this saved replay buffer (.npz) instead of collecting")
     predictor.add_argument(
         "--subgoals", default="random", help="subgoals while collecting: random, farthest or a decider .zip"
@@ -255,6 +303,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="world config key (repeatable)"
     )
     train.set_defaults(func=_train)
+
+    evaluate = sub.add_parser("evaluate", help="run a trained hierarchy on seeded traffic flows")
+    evaluate.add_argument(
+        "--model", required=True, help="a decider run folder, pretrained/, or a decider .zip inside one"
+    )
+    evaluate.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
+    evaluate.add_argument("--episodes-per-task", type=int, default=50)
+    evaluate.add_argument("--seed", type=int, default=0, help="first traffic seed")
+    evaluate.add_argument("--json", help="also write the table and every episode to this JSON file")
+    evaluate.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
+    )
+    evaluate.set_defaults(func=_evaluate)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")
     world_options(config)

@@ -7,6 +7,7 @@ under ``torch.inference_mode()`` (about 40 us for a small network).
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -37,3 +38,12 @@ class FrozenPolicy:
         with th.inference_mode():
             action = self.policy._predict(tensors, deterministic=self.deterministic, action_masks=masks)
         return int(action.item())
+
+
+@functools.lru_cache(maxsize=8)
+def load_frozen_policy(path: str, deterministic: bool = True) -> FrozenPolicy:
+    """A :class:`FrozenPolicy` loaded once per process and path (the option env's planner).
+
+    Torch's thread count is left alone: env worker processes set their own.
+    """
+    return FrozenPolicy(path, deterministic=deterministic, threads=None)

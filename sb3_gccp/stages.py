@@ -14,6 +14,7 @@ Run folder layout (rl-zoo's, plus our checkpoints)::
 
 from __future__ import annotations
 
+import math
 import shlex
 import sys
 import time
@@ -24,7 +25,7 @@ from typing import Any
 import torch as th
 import yaml
 from sb3_contrib import MaskablePPO
-from stable_baselines3.common.callbacks import CheckpointCallback
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -57,6 +58,10 @@ class StageRequest:
     """Environment steps between checkpoints (over all workers)."""
     torch_threads: int | None = None
     """Torch threads of the learner process (the env workers use no torch); ``None`` keeps torch's."""
+    planner: Path | None = None
+    """The frozen motion-planner ``.zip`` (decider stage)."""
+    max_episodes: int | None = None
+    """Stop the planner stage after this many episodes over all workers (N_g); None: ``n_timesteps``."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
 
@@ -99,7 +104,7 @@ def train_planner(request: StageRequest) -> Path:
     if n_timesteps < 1 or n_envs < 1:
         raise HyperparamsError("n_timesteps and n_envs must be positive")
     if request.resume is None:
-        _write_run_files(run_dir, settings, request)
+        write_run_files(run_dir, settings, request)
     env = make_vec_env(
         PLANNER_ENV_ID,
         n_envs=n_envs,
@@ -117,17 +122,22 @@ def train_planner(request: StageRequest) -> Path:
             tensorboard_log=str(run_dir / "tb"),
             seed=seed,
             verbose=request.verbose,
-            **_algorithm_kwargs(settings, n_timesteps),
+            **algorithm_kwargs(settings, n_timesteps),
         )
-    callback = CheckpointCallback(
-        max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
-    )
+    callbacks: list[BaseCallback] = [
+        CheckpointCallback(
+            max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
+        )
+    ]
+    if request.max_episodes is not None:
+        # SB3 counts the limit per worker.
+        callbacks.append(StopTrainingOnMaxEpisodes(math.ceil(request.max_episodes / n_envs)))
     remaining = n_timesteps - model.num_timesteps
     try:
         if remaining > 0:
             model.learn(
                 remaining,
-                callback=callback,
+                callback=callbacks,
                 progress_bar=request.progress_bar,
                 reset_num_timesteps=checkpoint is None,
                 tb_log_name="planner",
@@ -139,7 +149,9 @@ def train_planner(request: StageRequest) -> Path:
     return path
 
 
-def _algorithm_kwargs(settings: dict[str, Any], n_timesteps: int) -> dict[str, Any]:
+def algorithm_kwargs(
+    settings: dict[str, Any], n_timesteps: int, default_policy: str = "MotionPlannerPolicy"
+) -> dict[str, Any]:
     """Constructor arguments of MaskablePPO from resolved settings."""
     defaults = constructor_defaults(MaskablePPO)
     kwargs = {k: v for k, v in settings.items() if k not in ("n_timesteps", "n_envs", "env_kwargs", "policy")}
@@ -147,13 +159,11 @@ def _algorithm_kwargs(settings: dict[str, Any], n_timesteps: int) -> dict[str, A
     for key in ("learning_rate", "clip_range"):
         if key in kwargs:
             kwargs[key] = resolve_schedule(kwargs[key], key, per_timestep, n_timesteps)
-    kwargs["policy"] = resolve_class(
-        str(settings.get("policy", "MotionPlannerPolicy")), MaskablePPO.policy_aliases
-    )
+    kwargs["policy"] = resolve_class(str(settings.get("policy", default_policy)), MaskablePPO.policy_aliases)
     return kwargs
 
 
-def _write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:
+def write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:
     run_dir.mkdir(parents=True, exist_ok=False)
     (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
     args = {
@@ -161,6 +171,7 @@ def _write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequ
         "seed": request.seed,
         "n_timesteps": request.n_timesteps,
         "log_folder": str(request.log_folder),
+        "planner": None if request.planner is None else str(request.planner),
     }
     (run_dir / "args.yml").write_text(yaml.safe_dump(args, sort_keys=True))
     (run_dir / "command.txt").write_text(shlex.join(request.argv) + "\n")

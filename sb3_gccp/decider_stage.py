@@ -1,0 +1,227 @@
+"""The decision-maker stage: MaskablePPO on ``GCCPDecider-v0`` with the frozen planner and GCCP.
+
+Run folder (``<log_folder>/decider/GCCPDecider-v0_<seed>_<time>/``), complete for evaluation::
+
+    config.yml, args.yml, command.txt   the resolved zoo entry (with its ``gccp`` map) and the command
+    planner.zip                         the frozen motion-planner the options ran
+    decider.zip                         the trained decision-maker
+    predictor.pt                        the GCCP predictor trained on the side (learned variants)
+    hierarchy.yml                       what ``sb3_gccp evaluate`` loads: files, GCCP variant, world
+    episodes.csv                        one row per training episode (task, success, crash, masks on)
+    training_curve.png, metrics.json    success and collision rate per episode; where it passed 70 %
+    monitor/, tb/                       Monitor CSVs and TensorBoard logs
+    checkpoints/                        the latest decider.zip, predictor, optimiser and replay buffer
+
+``--stage all`` trains the planner (``GCCPPlanner-v0`` entry of the same file) and then the decider
+with it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+import yaml
+from sb3_contrib import MaskablePPO
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+from gccp_envs.config import IntersectionConfig
+from sb3_gccp.callbacks import LEARNED, GCCPCallback, GCCPSettings, write_episodes
+from sb3_gccp.hierarchy import HIERARCHY_FILE
+from sb3_gccp.hyperparams import HyperparamsError, check_keys, load_hyperparams
+from sb3_gccp.prediction import load_predictor
+from sb3_gccp.replay import EpisodeReplayBuffer
+from sb3_gccp.stages import StageRequest, algorithm_kwargs, train_planner, write_run_files
+
+DECIDER_ENV_ID = "GCCPDecider-v0"
+
+
+def make_decider_env(torch_threads: int | None = None, **kwargs: Any) -> gym.Env:
+    """``GCCPDecider-v0`` for a vec-env worker; ``torch_threads`` limits torch in that process."""
+    if torch_threads is not None:
+        th.set_num_threads(torch_threads)
+    return gym.make(DECIDER_ENV_ID, **kwargs)
+
+
+def decider_settings(request: StageRequest) -> tuple[dict[str, Any], GCCPSettings]:
+    """The decider's zoo entry (``n_timesteps`` overridden by the request) and its ``gccp`` map."""
+    settings = load_hyperparams(request.config_file, DECIDER_ENV_ID)
+    if request.n_timesteps is not None:
+        settings["n_timesteps"] = request.n_timesteps
+    try:
+        gccp = GCCPSettings.from_dict(settings.get("gccp"))
+    except (ValueError, TypeError) as err:
+        raise HyperparamsError(str(err)) from err
+    return settings, gccp
+
+
+def train_decider(request: StageRequest) -> Path:
+    """Train the decision-maker with the frozen planner ``request.planner``; return the run folder.
+
+    With ``request.resume`` (a decider run folder) training continues from its latest checkpoint,
+    predictor, optimiser and replay buffer included, up to the same episode budget.
+    """
+    if request.torch_threads is not None:
+        th.set_num_threads(request.torch_threads)
+    seed = request.seed
+    if request.resume is not None:
+        run_dir = request.resume
+        if not (run_dir / "config.yml").is_file() or not (run_dir / "planner.zip").is_file():
+            raise HyperparamsError(f"not a decider run folder (no config.yml or planner.zip): {run_dir}")
+        settings = yaml.safe_load((run_dir / "config.yml").read_text())
+        seed = int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
+        gccp = GCCPSettings.from_dict(settings.get("gccp"))
+    else:
+        if request.planner is None or not request.planner.is_file():
+            raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
+        settings, gccp = decider_settings(request)
+        run_dir = request.log_folder / "decider" / f"{DECIDER_ENV_ID}_{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    ppo_settings = {k: v for k, v in settings.items() if k != "gccp"}
+    check_keys(ppo_settings, MaskablePPO)
+    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
+    n_timesteps = int(settings.get("n_timesteps", 100_000))
+    n_envs = int(settings.get("n_envs", 1))
+    if n_timesteps < 1 or n_envs < 1:
+        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
+    if request.resume is None:
+        write_run_files(run_dir, settings, request)
+        assert request.planner is not None
+        shutil.copyfile(request.planner, run_dir / "planner.zip")
+
+    env = make_vec_env(
+        make_decider_env,
+        n_envs=n_envs,
+        seed=seed,
+        env_kwargs={
+            "config": world,
+            "planner_path": str(run_dir / "planner.zip"),
+            "torch_threads": 1 if n_envs > 1 else None,
+        },
+        monitor_dir=str(run_dir / "monitor"),
+        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+    )
+    checkpoints = run_dir / "checkpoints"
+    resumed = request.resume is not None and (checkpoints / "gccp_state.pt").is_file()
+    buffer = EpisodeReplayBuffer(gccp.buffer_capacity)
+    if resumed and (checkpoints / "buffer.npz").is_file():
+        buffer = EpisodeReplayBuffer.load(checkpoints / "buffer.npz", gccp.buffer_capacity)
+    if resumed and predictor is not None and gccp.predictor in LEARNED:
+        predictor.load_state_dict(load_predictor(checkpoints / "predictor.pt").state_dict())
+    callback = GCCPCallback(gccp, predictor, buffer, seed=seed, progress_bar=request.progress_bar)
+    callback.checkpoint_dir = checkpoints
+    if resumed:
+        callback.restore(checkpoints)
+        model = MaskablePPO.load(checkpoints / "decider.zip", env=env, tensorboard_log=str(run_dir / "tb"))
+    else:
+        model = MaskablePPO(
+            env=env,
+            tensorboard_log=str(run_dir / "tb"),
+            seed=seed,
+            verbose=request.verbose,
+            **algorithm_kwargs(ppo_settings, n_timesteps, default_policy="DecisionMakerPolicy"),
+        )
+    try:
+        if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
+            model.learn(
+                n_timesteps - model.num_timesteps,
+                callback=callback,
+                reset_num_timesteps=not resumed,
+                tb_log_name="decider",
+            )
+    finally:
+        env.close()
+    model.save(run_dir / "decider.zip")
+    callback.save(checkpoints, with_model=False)
+    shutil.copyfile(run_dir / "decider.zip", checkpoints / "decider.zip")
+    if (checkpoints / "predictor.pt").is_file():
+        shutil.copyfile(checkpoints / "predictor.pt", run_dir / "predictor.pt")
+    write_episodes(callback.history, run_dir / "episodes.csv")
+    hierarchy = {
+        "planner": "planner.zip",
+        "decider": "decider.zip",
+        "predictor": gccp.predictor,
+        "predictor_weights": "predictor.pt" if gccp.predictor in LEARNED else None,
+        "world": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(world).items()},
+    }
+    (run_dir / HIERARCHY_FILE).write_text(yaml.safe_dump(hierarchy, sort_keys=False))
+    metrics = training_metrics(callback.history, gccp)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    plot_training_curve(callback.history, gccp, run_dir / "training_curve.png")
+    return run_dir
+
+
+def train_all(request: StageRequest) -> tuple[Path, Path]:
+    """The main job: the planner, then the decision-maker with it; return both run folders' models."""
+    _, gccp = decider_settings(request)  # check the decider's entry before hours of planner training
+    planner_request = replace(request, max_episodes=gccp.planner_episodes, n_timesteps=None)
+    planner = train_planner(planner_request)
+    decider_run = train_decider(replace(request, planner=planner))
+    return planner, decider_run
+
+
+def rolling_rate(values: list[int], window: int = 100) -> np.ndarray:
+    """Mean of the last ``window`` values (fewer at the start) at every episode."""
+    array = np.asarray(values, dtype=float)
+    if not len(array):
+        return array
+    sums = np.cumsum(array)
+    counts = np.minimum(np.arange(1, len(array) + 1), window)
+    previous = np.concatenate([np.zeros(window), sums])[: len(array)]
+    return (sums - previous) / counts
+
+
+def training_metrics(history: list[dict[str, Any]], gccp: GCCPSettings, window: int = 100) -> dict[str, Any]:
+    """Episodes, the success and collision rates of the last ``window`` episodes, and the first
+    episode at which the rolling success rate (over ``window`` full episodes) reached 70 % and 90 %."""
+    success = rolling_rate([row["success"] for row in history], window)
+    crashed = rolling_rate([row["crashed"] for row in history], window)
+
+    def first_above(level: float) -> int | None:
+        hits = np.flatnonzero(success[window - 1 :] >= level)
+        return int(hits[0] + window) if len(hits) else None
+
+    return {
+        "episodes": len(history),
+        "mask_after_episodes": gccp.mask_after_episodes,
+        "window": window,
+        "final_success_rate": float(success[-1]) if len(success) else math.nan,
+        "final_collision_rate": float(crashed[-1]) if len(crashed) else math.nan,
+        "first_episode_success_70": first_above(0.7),
+        "first_episode_success_90": first_above(0.9),
+    }
+
+
+def plot_training_curve(
+    history: list[dict[str, Any]], gccp: GCCPSettings, path: Path, window: int = 100
+) -> None:
+    """Success and collision rate per episode (rolling over ``window``), as in the paper's Fig. 5."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    episodes = np.arange(1, len(history) + 1)
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot(episodes, rolling_rate([r["success"] for r in history], window), label="success")
+    ax.plot(episodes, rolling_rate([r["crashed"] for r in history], window), label="collision")
+    ax.axhline(0.7, color="grey", lw=0.8, ls=":")
+    ax.axhline(0.9, color="grey", lw=0.8, ls=":")
+    if gccp.predictor != "none" and gccp.mask_after_episodes < len(history):
+        ax.axvline(gccp.mask_after_episodes, color="black", lw=0.8, ls="--", label="GCCP masks on")
+    ax.set_xlabel("episode")
+    ax.set_ylabel(f"rate (last {window} episodes)")
+    ax.set_ylim(0, 1)
+    ax.legend(loc="center right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

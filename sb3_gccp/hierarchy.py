@@ -1,0 +1,86 @@
+"""A trained hierarchy on disk: decision-maker, motion-planner and GCCP module, ready to evaluate.
+
+A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its files::
+
+    planner: planner.zip
+    decider: decider.zip
+    predictor: learned            # learned, no_goal, cv or none (w/o GCCP)
+    predictor_weights: predictor.pt
+    world: {...}                  # the world config the decider was trained on
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.option_env import GCCPDeciderEnv
+from sb3_gccp.callbacks import LEARNED, PREDICTORS
+from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.hyperparams import read_yaml_mapping
+from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, load_predictor
+
+HIERARCHY_FILE = "hierarchy.yml"
+
+
+@dataclass(frozen=True)
+class Hierarchy:
+    """The files of a trained hierarchy."""
+
+    decider: Path
+    planner: Path
+    predictor: str
+    predictor_weights: Path | None
+    world: Mapping[str, Any] = field(default_factory=dict)
+
+    def make_env(
+        self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
+    ) -> GCCPDeciderEnv:
+        """The option env with the frozen planner and the GCCP mask, on the training world config."""
+        world = IntersectionConfig.from_dict({**self.world, **(overrides or {})})
+        return GCCPDeciderEnv(
+            world, planner=FrozenPolicy(self.planner), mask_fn=self.mask_fn(), render_mode=render_mode
+        )
+
+    def mask_fn(self) -> GCCPMask | None:
+        """The GCCP module of this hierarchy (``None`` without GCCP)."""
+        if self.predictor == "none":
+            return None
+        if self.predictor == "cv":
+            return GCCPMask(ConstantVelocityPredictor())
+        assert self.predictor_weights is not None
+        return GCCPMask(load_predictor(self.predictor_weights))
+
+    def decider_policy(self) -> FrozenPolicy:
+        """The decision-maker, deterministic."""
+        return FrozenPolicy(self.decider)
+
+
+def load_hierarchy(path: str | Path) -> Hierarchy:
+    """Read a hierarchy from a run folder, ``pretrained/``, or a decider ``.zip`` inside one.
+
+    :raises ValueError: with a one-line reason when something is missing
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"model not found: {path}")
+    folder = path.parent if path.is_file() else path
+    spec_file = folder / HIERARCHY_FILE
+    if not spec_file.is_file():
+        raise ValueError(
+            f"no {HIERARCHY_FILE} in {folder}: give a decider run folder or a decider .zip in one"
+        )
+    spec = read_yaml_mapping(spec_file, "hierarchy file")
+    predictor = str(spec.get("predictor", "none"))
+    if predictor not in PREDICTORS:
+        raise ValueError(f"{spec_file}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
+    decider = path if path.is_file() else folder / str(spec.get("decider", "decider.zip"))
+    planner = folder / str(spec.get("planner", "planner.zip"))
+    weights = folder / str(spec["predictor_weights"]) if predictor in LEARNED else None
+    for needed in (decider, planner, weights):
+        if needed is not None and not needed.is_file():
+            raise ValueError(f"{spec_file} names a missing file: {needed}")
+    return Hierarchy(decider, planner, predictor, weights, dict(spec.get("world") or {}))

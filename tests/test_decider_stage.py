@@ -1,0 +1,136 @@
+"""The decision-maker stage and ``sb3_gccp evaluate`` through the CLI, on a tiny budget."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS
+from sb3_contrib import MaskablePPO
+
+from gccp_envs.planner_env import GCCPPlannerEnv
+
+TINY_DECIDER = {
+    "GCCPDecider-v0": {
+        "n_timesteps": 1000,
+        "n_envs": 2,
+        "policy": "DecisionMakerPolicy",
+        "n_steps": 4,
+        "batch_size": 8,
+        "n_epochs": 1,
+        "policy_kwargs": {"encoder": TINY_ENCODER, "net_arch": {"pi": [8, 8], "vf": [8, 8]}},
+        "env_kwargs": {"duration": 2.0, "spawn_probability": 0.2},
+        "gccp": {
+            "n_episodes": 3,
+            "mask_after_episodes": 2,
+            "predictor_kwargs": {"encoder": TINY_ENCODER, "decoder_hidden": 8},
+            "save_every_episodes": 2,
+        },
+    }
+}
+"""A decider run of seconds: 2 s episodes (2 decisions each), masks on after 2 episodes."""
+
+
+def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_planner(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    settings = TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"]
+    env = GCCPPlannerEnv(**settings["env_kwargs"])
+    model = MaskablePPO("MultiInputPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0)
+    model.learn(16)
+    path = tmp_path_factory.mktemp("planner") / "planner.zip"
+    model.save(path)
+    return path
+
+
+def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
+    config = tmp_path / "tiny.yml"
+    config.write_text(yaml.safe_dump(TINY_DECIDER))
+    args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", "runs")
+    result = sb3_gccp(*args, "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "decider").iterdir()
+    assert run.name.startswith("GCCPDecider-v0_2_")
+    for name in (
+        "planner.zip",
+        "decider.zip",
+        "predictor.pt",
+        "hierarchy.yml",
+        "episodes.csv",
+        "metrics.json",
+    ):
+        assert (run / name).is_file(), name
+    assert (run / "training_curve.png").stat().st_size > 1000
+    assert list((run / "tb").rglob("events.out.tfevents.*"))
+    with (run / "episodes.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert [row["masks_on"] for row in rows] == ["0", "0", "1"]
+    assert json.loads((run / "metrics.json").read_text())["episodes"] == 3
+    hierarchy = yaml.safe_load((run / "hierarchy.yml").read_text())
+    assert hierarchy["predictor"] == "learned" and hierarchy["world"]["duration"] == 2.0
+
+    # The same seed gives the same table; a decider .zip inside the run folder works as well.
+    evaluate = ("evaluate", "--episodes-per-task", "1", "--tasks", "left,right", "--seed", "5")
+    first = sb3_gccp(*evaluate, "--model", str(run), "--json", "table.json", cwd=tmp_path)
+    second = sb3_gccp(*evaluate, "--model", str(run / "decider.zip"), cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    assert "| overall | 2 |" in first.stdout
+    assert first.stdout.splitlines()[1:] == second.stdout.splitlines()[1:]
+    assert set(json.loads((tmp_path / "table.json").read_text())["table"]) == {"left", "right", "overall"}
+
+    # A longer budget in the run's config plays the part of an interrupted run: resume continues from
+    # the checkpoint with the predictor, its optimiser and the replay buffer.
+    settings = yaml.safe_load((run / "config.yml").read_text())
+    settings["gccp"]["n_episodes"] = 5
+    (run / "config.yml").write_text(yaml.safe_dump(settings))
+    result = sb3_gccp("train", "--stage", "decider", "--log-folder", "runs", "--resume", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    with (run / "episodes.csv").open() as file:
+        resumed = list(csv.DictReader(file))
+    assert resumed[:3] == rows and len(resumed) == 5
+    assert [row["masks_on"] for row in resumed[3:]] == ["1", "1"]
+    state = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import torch; s = torch.load('checkpoints/gccp_state.pt', weights_only=True); "
+            "print(s['episodes'], s['gradient_steps'])",
+        ],
+        cwd=run,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert state.stdout.split() == ["5", "25"], state.stderr  # K_p = 5 steps per episode
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["train", "--stage", "decider"],
+            "the decider stage needs --planner PATH.zip (a trained motion-planner)",
+        ),
+        (["train", "--stage", "decider", "--planner", "none.zip"], "planner not found: none.zip"),
+        (["train", "--stage", "all", "--resume"], "--resume works per stage"),
+        (["evaluate", "--model", "nowhere"], "model not found: nowhere"),
+        (["evaluate", "--model", "."], "no hierarchy.yml in ."),
+        (["evaluate", "--model", ".", "--episodes-per-task", "0"], "--episodes-per-task must be at least 1"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    result = sb3_gccp(*args, cwd=tmp_path)
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith(f"sb3_gccp: error: {message}")
+    assert not (tmp_path / "runs").exists()

@@ -1,0 +1,157 @@
+"""The GCCP callback: replay buffer from the training envs, predictor on the side, masks pushed at N_m."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import torch as th
+from helpers import TINY_ENCODER
+from sb3_contrib import MaskablePPO
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from gccp_envs.option_env import GCCPDeciderEnv
+from sb3_gccp.callbacks import GCCPCallback, GCCPSettings
+from sb3_gccp.decider_stage import rolling_rate, training_metrics
+from sb3_gccp.policies import DecisionMakerPolicy
+from sb3_gccp.prediction import GCCPMask, PredictorConfig, TrajectoryPredictor, current_poses
+from sb3_gccp.replay import EpisodeReplayBuffer
+
+TINY_PREDICTOR = {"encoder": TINY_ENCODER, "decoder_hidden": 8}
+
+
+def tiny_predictor() -> TrajectoryPredictor:
+    return TrajectoryPredictor(PredictorConfig.from_dict(TINY_PREDICTOR))
+
+
+def decider_vec_env(n_envs: int = 2, **config: object) -> DummyVecEnv:
+    # The scripted planner drives; 2 s episodes have 2 decisions each.
+    return DummyVecEnv([lambda: GCCPDeciderEnv(duration=2.0, **config) for _ in range(n_envs)])
+
+
+def tiny_model(env: DummyVecEnv) -> MaskablePPO:
+    return MaskablePPO(
+        DecisionMakerPolicy,
+        env,
+        n_steps=4,
+        batch_size=4,
+        n_epochs=1,
+        policy_kwargs={"encoder": TINY_ENCODER, "net_arch": {"pi": [8, 8], "vf": [8, 8]}},
+        seed=0,
+    )
+
+
+def test_callback_fills_the_buffer_trains_the_predictor_and_switches_masks_on_at_n_m():
+    env = decider_vec_env()
+    settings = GCCPSettings(n_episodes=6, mask_after_episodes=3, predictor_kwargs=TINY_PREDICTOR)
+    predictor = tiny_predictor()
+    before = [p.detach().clone() for p in predictor.parameters()]
+    buffer = EpisodeReplayBuffer(100)
+    callback = GCCPCallback(settings, predictor, buffer)
+    model = tiny_model(env)
+    model.learn(1000, callback=callback)
+
+    assert callback.episodes == 6  # stopped at N_e, long before the step budget
+    assert [row["masks_on"] for row in callback.history] == [0, 0, 0, 1, 1, 1]
+    assert {row["task"] for row in callback.history} <= {"left", "straight", "right"}
+    # Every decision of every finished episode is in the buffer: 2 per 2 s episode.
+    assert len(buffer) == 2 * 6
+    assert callback.trainer is not None and callback.trainer.gradient_steps == 5 * 6
+    assert any(not th.equal(a, b) for a, b in zip(before, predictor.parameters(), strict=True))
+    for worker in env.envs:
+        mask_fn = worker.unwrapped.mask_fn
+        assert isinstance(mask_fn, GCCPMask)
+        assert mask_fn.predictor is not predictor  # a copy, as a subprocess worker would get
+        # Pushed after a rollout past N_m: trained weights, not the initial ones.
+        pushed = list(mask_fn.predictor.parameters())
+        assert any(not th.equal(a, b) for a, b in zip(before, pushed, strict=True))
+
+
+def test_without_gccp_nothing_is_masked_or_stored():
+    env = decider_vec_env()
+    buffer = EpisodeReplayBuffer(100)
+    callback = GCCPCallback(GCCPSettings(n_episodes=2, mask_after_episodes=0, predictor="none"), None, buffer)
+    tiny_model(env).learn(1000, callback=callback)
+    assert callback.episodes == 2 and not callback.masks_on and len(buffer) == 0
+    assert all(worker.unwrapped.mask_fn is None for worker in env.envs)
+
+
+def crossing_scene(env: DummyVecEnv) -> dict[str, np.ndarray]:
+    """Reset until the first worker sees a neighbour crossing the ego's heading; its observation."""
+    for seed in range(200):
+        env.seed(seed)
+        obs = env.reset()
+        first = {key: value[:1] for key, value in obs.items()}
+        pose, _ = current_poses({key: th.as_tensor(value) for key, value in first.items()})
+        present = first["history_mask"][0, 1].any()
+        if present and 0.5 < abs(float(pose[0, 1, 2])) < 2.6:
+            return {key: value[0] for key, value in first.items()}
+    raise AssertionError("no crossing neighbour in 200 seeds")
+
+
+def colliding_predictor(obs: dict[str, np.ndarray]) -> TrajectoryPredictor:
+    """A predictor whose every vehicle moves by the same offset (f, l) in its own frame, chosen so
+    that the ego lands on the first neighbour: (I - R(h)) (f, l) = (x, y)."""
+    predictor = tiny_predictor()
+    pose, _ = current_poses({key: th.as_tensor(value)[None] for key, value in obs.items()})
+    x, y, h = (float(v) for v in pose[0, 1])
+    rotation = np.array([[np.cos(h), -np.sin(h)], [np.sin(h), np.cos(h)]])
+    f, l = np.linalg.solve(np.eye(2) - rotation, [x, y])
+    last = predictor.decoder[-1]
+    scale = float(predictor.output_scale[0])
+    with th.no_grad():
+        last.weight.zero_()
+        last.bias.copy_(th.tensor([f / scale, l / scale, 0.0] * predictor.horizon))
+    return predictor
+
+
+def test_pushed_weights_change_the_workers_masks():
+    env = decider_vec_env(n_envs=1, spawn_probability=0.2)
+    obs = crossing_scene(env)
+    callback = GCCPCallback(
+        GCCPSettings(predictor_kwargs=TINY_PREDICTOR), tiny_predictor(), EpisodeReplayBuffer(10)
+    )
+    callback.init_callback(tiny_model(env))
+
+    with th.no_grad():  # everybody stands still: nothing collides
+        callback.predictor.decoder[-1].weight.zero_()
+        callback.predictor.decoder[-1].bias.zero_()
+    callback.push_masks()
+    (still,) = env.env_method("action_masks")
+    assert still.all()
+
+    callback.predictor.load_state_dict(colliding_predictor(obs).state_dict())
+    callback.push_masks()
+    (colliding,) = env.env_method("action_masks")
+    nearest = np.argmin(np.hypot(*obs["subgoals"][:, :2].T))
+    # Every subgoal is predicted to collide: the env's fallback allows only the nearest candidate.
+    assert colliding.sum() == 1 and colliding[nearest]
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"n_episode": 5}, "unknown gccp settings key(s): 'n_episode' (did you mean 'n_episodes'?)"),
+        ({"predictor": "magic"}, "gccp.predictor must be one of learned, no_goal, cv, none, got 'magic'"),
+        ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
+        ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
+        (
+            {"predictor_kwargs": {"decoder_width": 3}},
+            "unknown predictor config key(s): 'decoder_width' (did you mean 'decoder_hidden'?)",
+        ),
+    ],
+)
+def test_bad_settings_name_the_problem(values, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+        GCCPSettings.from_dict(values)
+
+
+def test_rolling_rate_and_the_episode_where_success_passes_70_percent():
+    np.testing.assert_allclose(rolling_rate([1, 0, 1, 1], window=2), [1.0, 0.5, 0.5, 1.0])
+    history = [{"success": int(k >= 150), "crashed": int(k < 150)} for k in range(300)]
+    metrics = training_metrics(history, GCCPSettings(), window=100)
+    # The rolling rate over the last 100 episodes reaches 0.7 when 70 of them succeeded: episode 220.
+    assert metrics["first_episode_success_70"] == 220
+    assert metrics["first_episode_success_90"] == 240
+    assert metrics["final_success_rate"] == 1.0 and metrics["final_collision_rate"] == 0.0
