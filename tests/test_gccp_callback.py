@@ -97,12 +97,12 @@ def colliding_predictor(obs: dict[str, np.ndarray]) -> TrajectoryPredictor:
     pose, _ = current_poses({key: th.as_tensor(value)[None] for key, value in obs.items()})
     x, y, h = (float(v) for v in pose[0, 1])
     rotation = np.array([[np.cos(h), -np.sin(h)], [np.sin(h), np.cos(h)]])
-    f, l = np.linalg.solve(np.eye(2) - rotation, [x, y])
+    forward, left = np.linalg.solve(np.eye(2) - rotation, [x, y])
     last = predictor.decoder[-1]
     scale = float(predictor.output_scale[0])
     with th.no_grad():
         last.weight.zero_()
-        last.bias.copy_(th.tensor([f / scale, l / scale, 0.0] * predictor.horizon))
+        last.bias.copy_(th.tensor([forward / scale, left / scale, 0.0] * predictor.horizon))
     return predictor
 
 
