@@ -134,11 +134,11 @@ class IntersectionConfig:
     """T_m: motion-planner steps per decision (paper: 10)."""
     prediction_horizon: int = 10
     """T_f: future poses predicted per vehicle, at 0.1 s (paper: 10)."""
-    hold_probability: float = 0.1
+    hold_probability: float = 0.05
     """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
     planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
-    hold_continue: float = 0.7
-    """Planner env: chance that a hold subgoal is drawn again at the next redraw (mean hold 3.3 s)."""
+    hold_continue: float = 0.9
+    """Planner env: chance that a hold subgoal is drawn again at the next redraw (mean hold 10 s)."""
 
     # --- motion-planner reward (paper Eq. r^m) ---------------------------------------------------
     r_time: float = -0.05
