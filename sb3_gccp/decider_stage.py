@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import time
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -34,13 +33,19 @@ from sb3_contrib import MaskablePPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-from gccp_envs.config import IntersectionConfig
 from sb3_gccp.callbacks import LEARNED, GCCPCallback, GCCPSettings, write_episodes
 from sb3_gccp.hierarchy import HIERARCHY_FILE
-from sb3_gccp.hyperparams import HyperparamsError, check_keys, load_hyperparams
+from sb3_gccp.hyperparams import HyperparamsError, load_hyperparams
 from sb3_gccp.prediction import load_predictor
 from sb3_gccp.replay import EpisodeReplayBuffer
-from sb3_gccp.stages import StageRequest, algorithm_kwargs, train_planner, write_run_files
+from sb3_gccp.stages import (
+    StageRequest,
+    algorithm_kwargs,
+    open_run,
+    run_budget,
+    train_planner,
+    write_run_files,
+)
 
 DECIDER_ENV_ID = "GCCPDecider-v0"
 
@@ -52,16 +57,12 @@ def make_decider_env(torch_threads: int | None = None, **kwargs: Any) -> gym.Env
     return gym.make(DECIDER_ENV_ID, **kwargs)
 
 
-def decider_settings(request: StageRequest) -> tuple[dict[str, Any], GCCPSettings]:
-    """The decider's zoo entry (``n_timesteps`` overridden by the request) and its ``gccp`` map."""
-    settings = load_hyperparams(request.config_file, DECIDER_ENV_ID)
-    if request.n_timesteps is not None:
-        settings["n_timesteps"] = request.n_timesteps
+def gccp_settings(settings: dict[str, Any]) -> GCCPSettings:
+    """The ``gccp`` map of a decider entry, validated."""
     try:
-        gccp = GCCPSettings.from_dict(settings.get("gccp"))
+        return GCCPSettings.from_dict(settings.get("gccp"))
     except (ValueError, TypeError) as err:
         raise HyperparamsError(str(err)) from err
-    return settings, gccp
 
 
 def train_decider(request: StageRequest) -> Path:
@@ -72,26 +73,13 @@ def train_decider(request: StageRequest) -> Path:
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
-    seed = request.seed
-    if request.resume is not None:
-        run_dir = request.resume
-        if not (run_dir / "config.yml").is_file() or not (run_dir / "planner.zip").is_file():
-            raise HyperparamsError(f"not a decider run folder (no config.yml or planner.zip): {run_dir}")
-        settings = yaml.safe_load((run_dir / "config.yml").read_text())
-        seed = int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
-        gccp = GCCPSettings.from_dict(settings.get("gccp"))
-    else:
-        if request.planner is None or not request.planner.is_file():
-            raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
-        settings, gccp = decider_settings(request)
-        run_dir = request.log_folder / "decider" / f"{DECIDER_ENV_ID}_{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    ppo_settings = {k: v for k, v in settings.items() if k != "gccp"}
-    check_keys(ppo_settings, MaskablePPO)
-    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
-    n_timesteps = int(settings.get("n_timesteps", 100_000))
-    n_envs = int(settings.get("n_envs", 1))
-    if n_timesteps < 1 or n_envs < 1:
-        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    if request.resume is None and (request.planner is None or not request.planner.is_file()):
+        raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
+    run_dir, settings, seed = open_run(request, DECIDER_ENV_ID, "decider")
+    if not (run_dir / "planner.zip").is_file() and request.resume is not None:
+        raise HyperparamsError(f"not a decider run folder (no planner.zip): {run_dir}")
+    gccp = gccp_settings(settings)
+    world, n_timesteps, n_envs = run_budget(settings, own_keys=("gccp",))
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
     if request.resume is None:
         write_run_files(run_dir, settings, request)
@@ -128,7 +116,9 @@ def train_decider(request: StageRequest) -> Path:
             tensorboard_log=str(run_dir / "tb"),
             seed=seed,
             verbose=request.verbose,
-            **algorithm_kwargs(ppo_settings, n_timesteps, default_policy="DecisionMakerPolicy"),
+            **algorithm_kwargs(
+                {k: v for k, v in settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+            ),
         )
     try:
         if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
@@ -162,7 +152,8 @@ def train_decider(request: StageRequest) -> Path:
 
 def train_all(request: StageRequest) -> tuple[Path, Path]:
     """The main job: the planner, then the decision-maker with it; return both run folders' models."""
-    _, gccp = decider_settings(request)  # check the decider's entry before hours of planner training
+    # Check the decider's entry before hours of planner training.
+    gccp = gccp_settings(load_hyperparams(request.config_file, DECIDER_ENV_ID))
     planner_request = replace(request, max_episodes=gccp.planner_episodes, n_timesteps=None)
     planner = train_planner(planner_request)
     decider_run = train_decider(replace(request, planner=planner))

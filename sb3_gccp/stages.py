@@ -85,24 +85,8 @@ def train_planner(request: StageRequest) -> Path:
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
-    seed = request.seed
-    if request.resume is not None:
-        run_dir = request.resume
-        if not (run_dir / "config.yml").is_file():
-            raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")
-        settings = yaml.safe_load((run_dir / "config.yml").read_text())
-        seed = int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
-    else:
-        settings = load_hyperparams(request.config_file, PLANNER_ENV_ID)
-        if request.n_timesteps is not None:
-            settings["n_timesteps"] = request.n_timesteps
-        run_dir = request.log_folder / "planner" / f"{PLANNER_ENV_ID}_{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    check_keys(settings, MaskablePPO)
-    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
-    n_timesteps = int(settings.get("n_timesteps", 100_000))
-    n_envs = int(settings.get("n_envs", 1))
-    if n_timesteps < 1 or n_envs < 1:
-        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    run_dir, settings, seed = open_run(request, PLANNER_ENV_ID, "planner")
+    world, n_timesteps, n_envs = run_budget(settings)
     if request.resume is None:
         write_run_files(run_dir, settings, request)
     env = make_vec_env(
@@ -147,6 +131,36 @@ def train_planner(request: StageRequest) -> Path:
     path = run_dir / "planner.zip"
     model.save(path)
     return path
+
+
+def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict[str, Any], int]:
+    """The run folder, settings and seed of a stage: a new run from the zoo file's ``env_id`` entry, or
+    with ``request.resume`` the run's own resolved config and seed. Nothing is written yet."""
+    if request.resume is None:
+        settings = load_hyperparams(request.config_file, env_id)
+        if request.n_timesteps is not None:
+            settings["n_timesteps"] = request.n_timesteps
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        return request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}", settings, request.seed
+    run_dir = request.resume
+    if not (run_dir / "config.yml").is_file():
+        raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")
+    settings = yaml.safe_load((run_dir / "config.yml").read_text())
+    return run_dir, settings, int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
+
+
+def run_budget(
+    settings: dict[str, Any], own_keys: tuple[str, ...] = ()
+) -> tuple[IntersectionConfig, int, int]:
+    """Check the settings' keys (besides ``own_keys``) against MaskablePPO; the world config,
+    ``n_timesteps`` and ``n_envs``."""
+    check_keys({k: v for k, v in settings.items() if k not in own_keys}, MaskablePPO)
+    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
+    n_timesteps = int(settings.get("n_timesteps", 100_000))
+    n_envs = int(settings.get("n_envs", 1))
+    if n_timesteps < 1 or n_envs < 1:
+        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    return world, n_timesteps, n_envs
 
 
 def algorithm_kwargs(
