@@ -143,6 +143,9 @@ class IntersectionConfig:
     # --- motion-planner reward (paper Eq. r^m) ---------------------------------------------------
     r_time: float = -0.05
     """Time penalty per step (paper: -0.05)."""
+    r_time_hold: float = 0.0
+    """Time penalty per step in the planner env while it holds the ego (``hold_probability``): without
+    it, rushing to the task exit costs less than waiting on a held point (ours; r_time elsewhere)."""
     r_arr: float = 1.0
     """Reward for reaching the subgoal (paper: 1.0)."""
     r_col: float = -1.0

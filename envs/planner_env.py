@@ -79,6 +79,8 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         after = goal_errors(self.world.ego, self._subgoal)
         arrived = self._goal_arrived(outcome, after)
         terms = planner_reward(self.config, before, after, arrived, outcome.crashed, outcome.offroad)
+        if self._holding:
+            terms["r_time"] = self.config.r_time_hold
         terminated = outcome.terminal
         truncated = not terminated and self._truncated()
         info: dict[str, Any] = {"reward_terms": terms, "goal_reached": arrived}

@@ -252,6 +252,17 @@ def test_planner_hold_subgoal_is_the_nearest_candidate_and_is_kept():
         np.testing.assert_array_equal(env._subgoal, goal)
 
 
+@pytest.mark.parametrize(("hold", "r_time"), [(1.0, 0.0), (0.0, -0.05)])
+def test_planner_time_penalty_is_r_time_hold_while_holding(hold, r_time):
+    env = make(
+        "GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=hold, hold_continue=1.0
+    )
+    env.reset(seed=1)
+    for _ in range(15):
+        *_, info = env.step(EgoAction.SLOW_DOWN)
+        assert info["reward_terms"]["r_time"] == r_time
+
+
 def test_planner_without_holds_draws_new_subgoals():
     env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=0.0)
     env.reset(seed=1)
