@@ -1,7 +1,7 @@
 """``GCCPPlanner-v0``: the motion-planner's subgoal-conditioned env (paper III-D, r^m).
 
-A subgoal is drawn from the N candidates at reset and every T_m steps (uniformly, or a "hold" at the
-candidate nearest the ego; see ``hold_probability``); the planner drives towards it with the 6
+A subgoal is drawn from the N candidates at reset and every T_m steps (uniformly from those ahead, or
+a "hold" at the candidate nearest the ego; see ``hold_probability``); the planner drives towards it with the 6
 discrete actions. The episode ends on a collision, leaving the road, reaching
 the task's exit (or another exit), or the time limit.
 """
@@ -39,8 +39,9 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         return self._observe(), {"task": self.world.task}
 
     def _choose_goal(self) -> None:
-        """A candidate drawn uniformly or, with ``hold_probability``, a hold: the candidate nearest the
-        ego, kept for the next period with ``hold_continue``. Holds teach the planner to stop where the
+        """A candidate drawn uniformly from those still ahead (beyond the reach radius) or, with
+        ``hold_probability``, a hold: the candidate nearest the ego, kept for the next period with
+        ``hold_continue``. Holds teach the planner to stop where the
         decision-maker holds it (the nearest lattice point stays the same while the ego waits)."""
         cfg = self.config
         if self._holding and self.np_random.random() < cfg.hold_continue:
@@ -48,11 +49,18 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
             return  # keep holding the same point
         candidates = self.world.subgoal_candidates()
         self._holding = bool(self.np_random.random() < cfg.hold_probability)
+        ego = self.world.ego
+        offsets = candidates[:, :2] - (ego.x, ego.y)
+        distances = np.hypot(*offsets.T)
         if self._holding:
-            distances = np.hypot(candidates[:, 0] - self.world.ego.x, candidates[:, 1] - self.world.ego.y)
             index = int(np.argmin(distances))
         else:
-            index = int(self.np_random.integers(len(candidates)))
+            # Only candidates still ahead: a goal beside or behind the ego always means "hold".
+            ahead = (offsets @ (np.cos(ego.heading), np.sin(ego.heading)) > 0) & (
+                distances > cfg.subgoal_reach_radius
+            )
+            choices = np.flatnonzero(ahead) if ahead.any() else np.arange(len(candidates))
+            index = int(choices[self.np_random.integers(len(choices))])
         self._subgoal = candidates[index].copy()
         self._arrived = False
 

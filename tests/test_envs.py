@@ -263,6 +263,18 @@ def test_planner_time_penalty_is_r_time_hold_while_holding(hold, r_time):
         assert info["reward_terms"]["r_time"] == r_time
 
 
+def test_planner_uniform_subgoals_lie_ahead_of_the_ego():
+    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="left", hold_probability=0.0)
+    for seed in range(5):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(40):
+            if env.world.steps % 10 == 0:  # just drawn: ahead and beyond the reach radius
+                assert obs["goal"][0] > 0 and np.hypot(*obs["goal"][:2]) > 2.0
+            obs, _, terminated, truncated, _ = env.step(EgoAction.KEEP_DIRECTION)
+            if terminated or truncated:
+                break
+
+
 def test_planner_without_holds_draws_new_subgoals():
     env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=0.0)
     env.reset(seed=1)
