@@ -134,3 +134,21 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith(f"sb3_gccp: error: {message}")
     assert not (tmp_path / "runs").exists()
+
+
+def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path):
+    planner = dict(TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"], n_timesteps=2000)
+    decider = yaml.safe_load(yaml.safe_dump(TINY_DECIDER["GCCPDecider-v0"]))
+    decider["n_envs"] = 1
+    decider["gccp"].update(n_episodes=2, planner_episodes=2)
+    config = tmp_path / "both.yml"
+    config.write_text(yaml.safe_dump({"GCCPPlanner-v0": planner, "GCCPDecider-v0": decider}))
+    result = sb3_gccp(
+        "train", "--stage", "all", "--config", str(config), "--log-folder", "runs", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    planner_zip, run = (Path(line.split(" ", 1)[1]) for line in result.stdout.strip().splitlines()[-2:])
+    # 2 episodes of at most 2 s (20 steps) each, far below the planner's 2000-step budget.
+    assert MaskablePPO.load(tmp_path / planner_zip).num_timesteps <= 40
+    assert (tmp_path / run / "planner.zip").read_bytes() == (tmp_path / planner_zip).read_bytes()
+    assert yaml.safe_load((tmp_path / run / "hierarchy.yml").read_text())["decider"] == "decider.zip"
