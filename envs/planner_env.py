@@ -14,6 +14,7 @@ import numpy as np
 from gymnasium import spaces
 
 from gccp_envs.base_env import IntersectionBaseEnv, Obs
+from gccp_envs.config import DT
 from gccp_envs.observation import pose_space
 from gccp_envs.rewards import goal_errors, goal_reached, planner_reward
 from gccp_envs.world import StepOutcome
@@ -39,7 +40,7 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         return self._observe(), {"task": self.world.task}
 
     def _choose_goal(self) -> None:
-        """A candidate drawn uniformly from those still ahead (beyond the reach radius) or, with
+        """A candidate drawn uniformly from those ahead and reachable within T_m steps or, with
         ``hold_probability``, a hold: the candidate nearest the ego, kept for the next period with
         ``hold_continue``. Holds teach the planner to stop where the
         decision-maker holds it (the nearest lattice point stays the same while the ego waits)."""
@@ -55,11 +56,16 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         if self._holding:
             index = int(np.argmin(distances))
         else:
-            # Only candidates still ahead: a goal beside or behind the ego always means "hold".
+            # Only candidates still ahead, so that a goal beside or behind the ego always means
+            # "hold"; preferably those reachable within the period at cruise speed, so that driving on
+            # pays (r_arr) and ending the episode early does not.
             ahead = (offsets @ (np.cos(ego.heading), np.sin(ego.heading)) > 0) & (
                 distances > cfg.subgoal_reach_radius
             )
-            choices = np.flatnonzero(ahead) if ahead.any() else np.arange(len(candidates))
+            reach = cfg.cruise_speed * cfg.decision_period * DT + cfg.subgoal_reach_radius
+            reachable = ahead & (distances <= reach)
+            pool = reachable if reachable.any() else ahead
+            choices = np.flatnonzero(pool) if pool.any() else np.arange(len(candidates))
             index = int(choices[self.np_random.integers(len(choices))])
         self._subgoal = candidates[index].copy()
         self._arrived = False
