@@ -100,6 +100,9 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         info: dict[str, Any] = {"reward_terms": terms, "goal_reached": arrived}
         if terminated or truncated:
             info.update(self._episode_info(outcome, truncated))
+        elif arrived and not self._holding:
+            # A reached subgoal is replaced at once: only a hold leaves a goal beside or behind the ego.
+            self._choose_goal()
         else:
             self._after_step()
         return self._observe(), float(sum(terms.values())), terminated, truncated, info

@@ -222,19 +222,33 @@ def test_is_success_only_at_the_tasks_own_exit(env_id, task, success):
 
 
 def test_planner_goal_is_a_candidate_and_changes_every_decision_period():
-    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight")
+    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=0.0)
     env.reset(seed=1)
     world = env.world
     goal = env._subgoal.copy()
     assert np.any(np.all(world.subgoal_candidates() == goal, axis=1))
     for _ in range(9):
-        obs, *_ = env.step(EgoAction.KEEP_DIRECTION)
+        obs, _, _, _, info = env.step(EgoAction.SLOW_DOWN)
+        assert not info["goal_reached"]
         np.testing.assert_array_equal(env._subgoal, goal)
-    env.step(EgoAction.KEEP_DIRECTION)
+    env.step(EgoAction.SLOW_DOWN)
     assert world.steps == 10
+    assert not np.array_equal(env._subgoal, goal)
     assert np.any(np.all(world.subgoal_candidates() == env._subgoal, axis=1))
     obs = env._observe()
     np.testing.assert_allclose(obs["goal"], env.observer.to_ego(env._subgoal))
+
+
+def test_planner_goal_is_replaced_when_reached():
+    env = make("GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=0.0)
+    env.reset(seed=1)
+    ego = env.world.ego
+    env._subgoal = np.array([ego.x + np.cos(ego.heading), ego.y + np.sin(ego.heading), ego.heading])
+    goal = env._subgoal.copy()
+    obs, _, _, _, info = env.step(EgoAction.KEEP_DIRECTION)
+    assert info["goal_reached"] and env.world.steps == 1
+    assert not np.array_equal(env._subgoal, goal)
+    assert obs["goal"][0] > 0  # the new goal lies ahead
 
 
 def test_planner_hold_subgoal_is_the_nearest_candidate_and_is_kept():
