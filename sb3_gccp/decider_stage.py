@@ -3,7 +3,8 @@
 Run folder (``<log_folder>/decider/GCCPDecider-v0_<seed>_<time>/``), complete for evaluation::
 
     config.yml, args.yml, command.txt   the resolved zoo entry (with its ``gccp`` map) and the command
-    planner.zip                         the frozen motion-planner the options ran
+    planner.zip                         the frozen motion-planner the options ran (none with
+                                        ``--planner scripted``: the scripted pure-pursuit planner)
     decider.zip                         the trained decision-maker
     predictor.pt                        the GCCP predictor trained on the side (learned variants)
     hierarchy.yml                       what ``sb3_gccp evaluate`` loads: files, GCCP variant, world
@@ -34,7 +35,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_gccp.callbacks import LEARNED, GCCPCallback, GCCPSettings, write_episodes
-from sb3_gccp.hierarchy import HIERARCHY_FILE
+from sb3_gccp.hierarchy import HIERARCHY_FILE, SCRIPTED
 from sb3_gccp.hyperparams import HyperparamsError, load_hyperparams
 from sb3_gccp.prediction import load_predictor
 from sb3_gccp.replay import EpisodeReplayBuffer
@@ -73,18 +74,20 @@ def train_decider(request: StageRequest) -> Path:
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
-    if request.resume is None and (request.planner is None or not request.planner.is_file()):
+    scripted = request.planner == Path(SCRIPTED)
+    if request.resume is None and not scripted and (request.planner is None or not request.planner.is_file()):
         raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
     run_dir, settings, seed = open_run(request, DECIDER_ENV_ID, "decider")
-    if not (run_dir / "planner.zip").is_file() and request.resume is not None:
-        raise HyperparamsError(f"not a decider run folder (no planner.zip): {run_dir}")
+    if request.resume is not None:
+        scripted = not (run_dir / "planner.zip").is_file()
     gccp = gccp_settings(settings)
     world, n_timesteps, n_envs = run_budget(settings, own_keys=("gccp",))
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
     if request.resume is None:
         write_run_files(run_dir, settings, request)
-        assert request.planner is not None
-        shutil.copyfile(request.planner, run_dir / "planner.zip")
+        if not scripted:
+            assert request.planner is not None
+            shutil.copyfile(request.planner, run_dir / "planner.zip")
 
     env = make_vec_env(
         make_decider_env,
@@ -92,7 +95,7 @@ def train_decider(request: StageRequest) -> Path:
         seed=seed,
         env_kwargs={
             "config": world,
-            "planner_path": str(run_dir / "planner.zip"),
+            "planner_path": None if scripted else str(run_dir / "planner.zip"),
             "torch_threads": 1 if n_envs > 1 else None,
         },
         monitor_dir=str(run_dir / "monitor"),
@@ -137,7 +140,7 @@ def train_decider(request: StageRequest) -> Path:
         shutil.copyfile(checkpoints / "predictor.pt", run_dir / "predictor.pt")
     write_episodes(callback.history, run_dir / "episodes.csv")
     hierarchy = {
-        "planner": "planner.zip",
+        "planner": SCRIPTED if scripted else "planner.zip",
         "decider": "decider.zip",
         "predictor": gccp.predictor,
         "predictor_weights": "predictor.pt" if gccp.predictor in LEARNED else None,

@@ -2,7 +2,7 @@
 
 A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its files::
 
-    planner: planner.zip
+    planner: planner.zip          # or "scripted" (the scripted pure-pursuit planner)
     decider: decider.zip
     predictor: learned            # learned, no_goal, cv or none (w/o GCCP)
     predictor_weights: predictor.pt
@@ -24,6 +24,8 @@ from sb3_gccp.hyperparams import read_yaml_mapping
 from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, load_predictor
 
 HIERARCHY_FILE = "hierarchy.yml"
+SCRIPTED = "scripted"
+"""The planner name of a hierarchy whose options run the scripted planner (``gccp_envs.scripted``)."""
 
 
 @dataclass(frozen=True)
@@ -31,7 +33,8 @@ class Hierarchy:
     """The files of a trained hierarchy."""
 
     decider: Path
-    planner: Path
+    planner: Path | None
+    """The planner ``.zip``; ``None`` for the scripted planner."""
     predictor: str
     predictor_weights: Path | None
     world: Mapping[str, Any] = field(default_factory=dict)
@@ -42,7 +45,10 @@ class Hierarchy:
         """The option env with the frozen planner and the GCCP mask, on the training world config."""
         world = IntersectionConfig.from_dict({**self.world, **(overrides or {})})
         return GCCPDeciderEnv(
-            world, planner=FrozenPolicy(self.planner), mask_fn=self.mask_fn(), render_mode=render_mode
+            world,
+            planner=None if self.planner is None else FrozenPolicy(self.planner),
+            mask_fn=self.mask_fn(),
+            render_mode=render_mode,
         )
 
     def mask_fn(self) -> GCCPMask | None:
@@ -78,7 +84,8 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
     if predictor not in PREDICTORS:
         raise ValueError(f"{spec_file}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
     decider = path if path.is_file() else folder / str(spec.get("decider", "decider.zip"))
-    planner = folder / str(spec.get("planner", "planner.zip"))
+    name = str(spec.get("planner", "planner.zip"))
+    planner = None if name == SCRIPTED else folder / name
     weights = folder / str(spec["predictor_weights"]) if predictor in LEARNED else None
     for needed in (decider, planner, weights):
         if needed is not None and not needed.is_file():
