@@ -152,3 +152,32 @@ def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path
     assert MaskablePPO.load(tmp_path / planner_zip).num_timesteps <= 40
     assert (tmp_path / run / "planner.zip").read_bytes() == (tmp_path / planner_zip).read_bytes()
     assert yaml.safe_load((tmp_path / run / "hierarchy.yml").read_text())["decider"] == "decider.zip"
+
+
+def test_decider_stage_with_the_scripted_planner(tmp_path):
+    decider = yaml.safe_load(yaml.safe_dump(TINY_DECIDER["GCCPDecider-v0"]))
+    decider.update(n_envs=1)
+    decider["gccp"].update(n_episodes=1, predictor="cv")
+    config = tmp_path / "tiny.yml"
+    config.write_text(yaml.safe_dump({"GCCPDecider-v0": decider}))
+    args = (
+        "train",
+        "--stage",
+        "decider",
+        "--planner",
+        "scripted",
+        "--config",
+        str(config),
+        "--log-folder",
+        "runs",
+    )
+    result = sb3_gccp(*args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "decider").iterdir()
+    assert not (run / "planner.zip").exists() and not (run / "predictor.pt").exists()
+    assert yaml.safe_load((run / "hierarchy.yml").read_text())["planner"] == "scripted"
+    result = sb3_gccp(
+        "evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    assert "(GCCP: cv)" in result.stdout
