@@ -4,8 +4,8 @@
    for ``--hold-steps`` (3 s by default, so that even the farthest candidate is within reach): the share
    of subgoals reached, over the subgoals whose hold was not cut short by a collision or the time
    limit, and the share of episodes that end off the road.
-2. Stopping: on empty roads the planner is given the "hold" subgoal (the candidate nearest the ego)
-   and keeps it for 4 s: the share of episodes where it stands (below 0.5 m/s) at the end and did
+2. Stopping: on empty roads the planner is given only "hold" subgoals (the candidate nearest the ego,
+   redrawn every T_m steps) for 4 s: the share of episodes where it stands (below 0.5 m/s) at the end and did
    not leave the road. A decision-maker can only yield with a planner that stops.
 3. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
    on roads without traffic: the share of episodes that complete their task.
@@ -58,8 +58,8 @@ def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps
 
 
 def stopping(planner: FrozenPolicy, episodes: int, seed: int, steps: int = 40) -> float:
-    """Share of empty-road episodes in which the planner, held at the nearest candidate, stands still
-    on the road after ``steps`` steps."""
+    """Share of empty-road episodes in which the planner, given only hold subgoals, stands still on the
+    road after ``steps`` steps."""
     env = GCCPPlannerEnv(spawn_probability=0.0, hold_probability=1.0, hold_continue=1.0)
     stopped = 0
     for task in TASKS:
@@ -92,7 +92,7 @@ def main() -> None:
         f"{args.hold_steps} steps (default traffic)"
     )
     print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
-    print(f"stop_rate {stop_rate:.3f} (held at the nearest candidate for 4 s, empty road)")
+    print(f"stop_rate {stop_rate:.3f} (hold subgoals only for 4 s, empty road)")
     for task in TASKS:
         rows = [r for r in results if r.task == task]
         print(f"  {task:<9} completion {sum(r.success for r in rows) / len(rows):.3f} (empty road)")

@@ -139,6 +139,8 @@ class IntersectionConfig:
     planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
     hold_continue: float = 0.9
     """Planner env: chance that a hold subgoal is drawn again at the next redraw (mean hold 10 s)."""
+    hold_stop_speed: float = 1.0
+    """Planner env: a hold subgoal counts as reached only below this speed [m/s] (the car stands on it)."""
 
     # --- motion-planner reward (paper Eq. r^m) ---------------------------------------------------
     r_time: float = -0.05
@@ -243,6 +245,7 @@ def _validate(config: IntersectionConfig) -> None:
         "subgoal_range",
         "subgoal_reach_radius",
         "subgoal_reach_heading",
+        "hold_stop_speed",
     )
     for name in positive_floats:
         value = getattr(config, name)

@@ -41,15 +41,13 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
 
     def _choose_goal(self) -> None:
         """A candidate drawn uniformly from those ahead and reachable within T_m steps or, with
-        ``hold_probability``, a hold: the candidate nearest the ego, kept for the next period with
-        ``hold_continue``. Holds teach the planner to stop where the
-        decision-maker holds it (the nearest lattice point stays the same while the ego waits)."""
+        ``hold_probability`` (``hold_continue`` right after a hold), a hold: the candidate nearest the
+        ego, which counts as reached only when the car stands on it. A car that waits keeps the same
+        nearest lattice point, so waiting is paid r_arr every period; a car that drives on is not."""
         cfg = self.config
-        if self._holding and self.np_random.random() < cfg.hold_continue:
-            self._arrived = False
-            return  # keep holding the same point
+        threshold = cfg.hold_continue if self._holding else cfg.hold_probability
+        self._holding = bool(self.np_random.random() < threshold)
         candidates = self.world.subgoal_candidates()
-        self._holding = bool(self.np_random.random() < cfg.hold_probability)
         ego = self.world.ego
         offsets = candidates[:, :2] - (ego.x, ego.y)
         distances = np.hypot(*offsets.T)
@@ -77,6 +75,8 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
     def _goal_arrived(self, outcome: StepOutcome, errors: tuple[float, float]) -> bool:
         """Whether the goal was reached for the first time in this step."""
         arrived = not self._arrived and goal_reached(self.config, errors)
+        if self._holding:
+            arrived &= self.world.ego.speed < self.config.hold_stop_speed
         self._arrived |= arrived
         return arrived
 

@@ -251,19 +251,27 @@ def test_planner_goal_is_replaced_when_reached():
     assert obs["goal"][0] > 0  # the new goal lies ahead
 
 
-def test_planner_hold_subgoal_is_the_nearest_candidate_and_is_kept():
+def test_planner_hold_subgoal_is_the_nearest_candidate_and_is_reached_only_standing():
     env = make(
         "GCCPPlanner-v0", spawn_probability=0.0, task="straight", hold_probability=1.0, hold_continue=1.0
     )
     env.reset(seed=1)
     world = env.world
-    candidates = world.subgoal_candidates()
-    nearest = np.argmin(np.hypot(candidates[:, 0] - world.ego.x, candidates[:, 1] - world.ego.y))
-    goal = env._subgoal.copy()
-    np.testing.assert_array_equal(goal, candidates[nearest])
-    for _ in range(25):  # past two redraws, driving on: the held point stays
-        env.step(EgoAction.KEEP_DIRECTION)
-        np.testing.assert_array_equal(env._subgoal, goal)
+    for _ in range(3):  # at every redraw the hold is the candidate nearest the ego
+        candidates = world.subgoal_candidates()
+        nearest = np.argmin(np.hypot(candidates[:, 0] - world.ego.x, candidates[:, 1] - world.ego.y))
+        np.testing.assert_array_equal(env._subgoal, candidates[nearest])
+        for _ in range(10):
+            *_, info = env.step(EgoAction.KEEP_DIRECTION)
+            assert not info["goal_reached"]  # driving past does not count
+    for _ in range(30):
+        *_, info = env.step(EgoAction.SLOW_DOWN)
+    assert world.ego.speed == 0.0
+    reached = []
+    for _ in range(20):  # standing on the nearest lattice point: reached once per period
+        *_, info = env.step(EgoAction.SLOW_DOWN)
+        reached.append(info["goal_reached"])
+    assert sum(reached) == 2
 
 
 @pytest.mark.parametrize(("hold", "r_time"), [(1.0, 0.0), (0.0, -0.05)])
