@@ -21,7 +21,8 @@ def test_shipped_planner_config_is_valid():
     check_keys(settings, MaskablePPO)
     assert settings["policy"] == "MotionPlannerPolicy"
     assert settings["n_epochs"] == 5  # paper: K_m = 5
-    assert settings["learning_rate"] == {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 2000}
+    # The paper's 1e-4 -> 1e-5 after 2000 steps froze our planner (README): a higher start, a later step.
+    assert settings["learning_rate"] == {"initial": 3e-4, "final": 1e-5, "after_gradient_steps": 4000}
 
 
 def test_missing_entry_and_bad_yaml(tmp_path):

@@ -53,6 +53,7 @@ def test_scripted_planner_reaches_and_stops_on_a_goal():
     obs, _ = env.reset(seed=0)
     place_ego_on_path(env.world, 2, 30.0, 8.0)
     env._subgoal = path_pose(env.world.layout, 2, 45.0)
+    env._holding = True  # a hold: the goal is not replaced once reached
     obs = env._observe()
     reached = False
     for _ in range(45):
