@@ -215,8 +215,7 @@ class GCCPCallback(BaseCallback):
         if self._losses:
             log("gccp/predictor_loss", float(np.nanmean(self._losses)))
         if self.trainer is not None and len(self.buffer) and self.predictor is not None:
-            recent = {key: value[-256:] for key, value in self.buffer.stored().items()}
-            errors = displacement_errors(self.predictor, recent)
+            errors = displacement_errors(self.predictor, self.buffer.latest(256))
             log("gccp/ade", errors["ade"])
             log("gccp/fde", errors["fde"])
         if self._recent:

@@ -30,7 +30,6 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 import yaml
-from sb3_contrib import MaskablePPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -42,6 +41,7 @@ from sb3_gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.stages import (
     StageRequest,
     algorithm_kwargs,
+    make_model,
     open_run,
     run_budget,
     train_planner,
@@ -112,17 +112,12 @@ def train_decider(request: StageRequest) -> Path:
     callback.checkpoint_dir = checkpoints
     if resumed:
         callback.restore(checkpoints)
-        model = MaskablePPO.load(checkpoints / "decider.zip", env=env, tensorboard_log=str(run_dir / "tb"))
-    else:
-        model = MaskablePPO(
-            env=env,
-            tensorboard_log=str(run_dir / "tb"),
-            seed=seed,
-            verbose=request.verbose,
-            **algorithm_kwargs(
-                {k: v for k, v in settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
-            ),
-        )
+    kwargs = algorithm_kwargs(
+        {k: v for k, v in settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+    )
+    model = make_model(
+        env, run_dir, checkpoints / "decider.zip" if resumed else None, seed, request.verbose, kwargs
+    )
     try:
         if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
             model.learn(

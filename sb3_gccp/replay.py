@@ -106,6 +106,10 @@ class EpisodeReplayBuffer:
         """
         return self._get(self._order())
 
+    def latest(self, count: int) -> dict[str, np.ndarray]:
+        """The newest ``count`` decisions (all if fewer), oldest first (masks as float32)."""
+        return self._get(self._order()[-count:])
+
     def sample(self, batch_size: int = 64, rng: np.random.Generator | None = None) -> dict[str, np.ndarray]:
         """A batch of decisions drawn uniformly with replacement.
 

@@ -27,7 +27,7 @@ import yaml
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.hyperparams import (
@@ -98,16 +98,9 @@ def train_planner(request: StageRequest) -> Path:
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
     )
     checkpoint = latest_checkpoint(run_dir) if request.resume is not None else None
-    if checkpoint is not None:
-        model = MaskablePPO.load(checkpoint, env=env, tensorboard_log=str(run_dir / "tb"))
-    else:
-        model = MaskablePPO(
-            env=env,
-            tensorboard_log=str(run_dir / "tb"),
-            seed=seed,
-            verbose=request.verbose,
-            **algorithm_kwargs(settings, n_timesteps),
-        )
+    model = make_model(
+        env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(settings, n_timesteps)
+    )
     callbacks: list[BaseCallback] = [
         CheckpointCallback(
             max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
@@ -161,6 +154,16 @@ def run_budget(
     if n_timesteps < 1 or n_envs < 1:
         raise HyperparamsError("n_timesteps and n_envs must be positive")
     return world, n_timesteps, n_envs
+
+
+def make_model(
+    env: VecEnv, run_dir: Path, checkpoint: Path | None, seed: int, verbose: int, kwargs: dict[str, Any]
+) -> MaskablePPO:
+    """MaskablePPO logging to ``run_dir/tb``: loaded from ``checkpoint`` if given, else built from
+    ``kwargs``."""
+    if checkpoint is not None:
+        return MaskablePPO.load(checkpoint, env=env, tensorboard_log=str(run_dir / "tb"))
+    return MaskablePPO(env=env, tensorboard_log=str(run_dir / "tb"), seed=seed, verbose=verbose, **kwargs)
 
 
 def algorithm_kwargs(

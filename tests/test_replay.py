@@ -133,6 +133,15 @@ def test_capacity_keeps_the_newest_decisions():
     assert all(len(array) == 5 for array in buffer.arrays.values())
 
 
+def test_latest_are_the_newest_decisions_oldest_first():
+    buffer = EpisodeReplayBuffer(capacity=5)
+    fill(buffer, [[0, 1, 2], [3, 4, 5], [6]])  # wrapped around the ring
+    latest = buffer.latest(3)
+    stored = buffer.stored()
+    assert all(np.array_equal(latest[key], stored[key][-3:]) for key in stored)
+    assert len(buffer.latest(50)["future"]) == 5
+
+
 def test_sample_shapes_dtypes_and_uniformity():
     buffer = EpisodeReplayBuffer(capacity=8)
     with pytest.raises(ValueError, match="empty"):
