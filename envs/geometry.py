@@ -38,6 +38,21 @@ def to_frame(points: FloatArray, origin: FloatArray, heading: float) -> FloatArr
     return np.stack((c * dx + s * dy, -s * dx + c * dy), axis=-1)
 
 
+def from_frame(points: FloatArray, origin: FloatArray, heading: float) -> FloatArray:
+    """Express points (..., 2) given in the frame at ``origin`` rotated by ``heading`` in the world.
+
+    The inverse of :func:`to_frame`.
+
+    :param points: positions in the frame, last axis (x, y)
+    :param origin: frame origin (x, y)
+    :param heading: frame heading [rad]
+    :return: the world positions
+    """
+    c, s = np.cos(heading), np.sin(heading)
+    x, y = points[..., 0], points[..., 1]
+    return np.stack((origin[0] + c * x - s * y, origin[1] + s * x + c * y), axis=-1)
+
+
 def poses_to_frame(poses: FloatArray, origin: FloatArray, heading: float) -> FloatArray:
     """Express world poses (..., >=3) with columns (x, y, heading, ...) in a frame; extra columns kept.
 

@@ -9,7 +9,8 @@ Each step's ``info`` carries what the predictor's replay buffer needs, as raw fe
 normalised): the observation the decision was made from (``decision_obs``), the chosen subgoal in
 its ego frame (``subgoal``) and the ground-truth future of the decision (``future``, ``future_mask``:
 the next T_f poses of the ego and the neighbours of that observation), plus ``masked_share``, the
-share of candidates the mask function ruled out.
+share of candidates the mask function ruled out. ``set_planner_step_callback`` installs a function
+called after every planner step of an option, to follow the world at 0.1 s (e.g. to record a video).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ Planner = Callable[[Obs, np.ndarray], int]
 """A motion-planner: (planner observation, action mask) -> ego action."""
 MaskFunction = Callable[[Obs], np.ndarray]
 """A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed."""
+PlannerStepCallback = Callable[["GCCPDeciderEnv"], None]
+"""Called with the env after every planner step inside an option."""
 
 
 class GCCPDeciderEnv(IntersectionBaseEnv):
@@ -67,10 +70,16 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None
         self._masked: np.ndarray | None = None
+        self._planner_step_callback: PlannerStepCallback | None = None
 
     def set_mask_fn(self, mask_fn: MaskFunction | None) -> None:
         """Install (or remove with ``None``) the subgoal mask; callable through ``env_method``."""
         self.mask_fn = mask_fn
+
+    def set_planner_step_callback(self, callback: PlannerStepCallback | None) -> None:
+        """Install (or remove with ``None``) a function called with the env after every planner step of
+        an option, so that the world can be followed at 0.1 s rather than once per decision."""
+        self._planner_step_callback = callback
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -120,6 +129,8 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             ego_action = int(self.planner(planner_obs, world.action_mask()))
             before = goal_errors(world.ego, self._subgoal)
             outcome = world.step(ego_action)
+            if self._planner_step_callback is not None:
+                self._planner_step_callback(self)
             after = goal_errors(world.ego, self._subgoal)
             arrived = not reached and goal_reached(cfg, after)
             reached |= arrived

@@ -14,6 +14,7 @@ from gccp_envs.geometry import (
     Segment,
     box_corners,
     boxes_overlap,
+    from_frame,
     poses_to_frame,
     to_frame,
     wrap_angle,
@@ -59,6 +60,14 @@ def test_to_frame_screen_directions():
     assert to_frame(np.array([1.0, 0.0]), np.zeros(2), -np.pi / 2)[1] == pytest.approx(1.0)
     # Facing east: south (y down) is on the right.
     np.testing.assert_allclose(to_frame(np.array([[3.0, 2.0]]), np.zeros(2), 0.0), [[3.0, 2.0]])
+
+
+@given(coords, coords, angles, coords, coords)
+def test_from_frame_inverts_to_frame(ox, oy, heading, x, y):
+    origin, point = np.array([ox, oy]), np.array([x, y])
+    np.testing.assert_allclose(
+        from_frame(to_frame(point, origin, heading), origin, heading), point, atol=1e-7
+    )
 
 
 @given(coords, coords, angles, coords, coords, angles, st.floats(0.0, 20.0))

@@ -165,3 +165,14 @@ def test_future_survives_a_long_decision_period():
     assert not terminated and not truncated and env.world.steps == 20
     assert info["future"].shape == (6, 5, 3)
     np.testing.assert_array_equal(info["future_mask"][0], np.ones(5, bool))
+
+
+def test_planner_step_callback_follows_every_step_of_an_option():
+    env, _ = make(seed=1)
+    seen: list[int] = []
+    env.set_planner_step_callback(lambda e: seen.append(e.world.steps))
+    env.step(3)
+    assert seen == list(range(1, 11))
+    env.set_planner_step_callback(None)
+    env.step(3)
+    assert len(seen) == 10

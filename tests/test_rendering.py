@@ -13,6 +13,9 @@ from gccp_envs.rendering import (
     EGO_COLOR,
     MASKED_COLOR,
     OFF_ROAD_COLOR,
+    PREDICTED_EGO_COLOR,
+    PREDICTED_NEIGHBOUR_COLOR,
+    TEXT_COLOR,
     IntersectionRenderer,
 )
 
@@ -116,3 +119,42 @@ def test_renderer_frame_without_extras(layout):
     frame = IntersectionRenderer(layout, size=200, view=50.0).frame(world)
     assert frame.shape == (200, 200, 3)
     assert len(where(frame, CHOSEN_COLOR)) == len(where(frame, CANDIDATE_COLOR)) == 0
+
+
+def test_predicted_trajectories_caption_and_legend(layout):
+    from helpers import EMPTY
+
+    from gccp_envs.world import IntersectionWorld
+
+    world = IntersectionWorld(EMPTY)
+    world.reset(np.random.default_rng(0), "left")
+    renderer = IntersectionRenderer(layout)
+    plain = renderer.frame(world)
+    ego_path = np.stack([np.linspace(-30, -20, 10), np.full(10, 6.0)], -1)  # on the west arm
+    others = np.stack([np.full((1, 10), 20.0), np.linspace(-6, -2, 10)[None]], -1)  # on the east arm
+    frame = renderer.frame(world, ego_prediction=ego_path, neighbour_predictions=others)
+    for color, path in ((PREDICTED_EGO_COLOR, ego_path), (PREDICTED_NEIGHBOUR_COLOR, others[0])):
+        drawn = where(frame, color)
+        assert len(where(plain, color)) == 0 and len(drawn) > 20
+        np.testing.assert_allclose(drawn.min(0), np.min([pixel(x, y) for x, y in path], 0), atol=4)
+        np.testing.assert_allclose(drawn.max(0), np.max([pixel(x, y) for x, y in path], 0), atol=4)
+    labelled = renderer.frame(world, caption="left\nt = 0.0 s", legend=True)
+    corner = labelled[:200, :200]  # the grass north-west of the junction (lane markings are white too)
+    assert len(where(plain[:200, :200], TEXT_COLOR)) == 0
+    rows = where(corner, TEXT_COLOR)[:, 0]
+    assert rows.max() - rows.min() > renderer.font.get_linesize()  # one caption line under the other
+    legend = (CANDIDATE_COLOR, MASKED_COLOR, CHOSEN_COLOR, PREDICTED_EGO_COLOR, PREDICTED_NEIGHBOUR_COLOR)
+    for color in legend:
+        assert len(where(corner, color)) > 0, color
+
+
+def test_centre_moves_the_view(layout):
+    from helpers import EMPTY
+
+    from gccp_envs.world import IntersectionWorld
+
+    world = IntersectionWorld(EMPTY)
+    world.reset(np.random.default_rng(0), "left")
+    ego = world.ego
+    frame = IntersectionRenderer(layout, centre=(0.0, 10.0)).frame(world)
+    np.testing.assert_allclose(where(frame, EGO_COLOR).mean(0), pixel(ego.x, ego.y - 10.0), atol=3)
