@@ -134,12 +134,11 @@ class IntersectionConfig:
     """T_m: motion-planner steps per decision (paper: 10)."""
     prediction_horizon: int = 10
     """T_f: future poses predicted per vehicle, at 0.1 s (paper: 10)."""
-    hold_probability: float = 0.1
-    """Planner env: chance that a new subgoal is a 'hold', the nearest candidate ahead that the ego can
-    still stop on by braking, so that the planner learns to stop where the decision-maker holds it
-    (paper: not given; 0 = always uniform)."""
-    hold_continue: float = 0.7
-    """Planner env: chance that a hold goes on, on the same point, for another period (mean 3.3 s)."""
+    hold_probability: float = 0.05
+    """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
+    planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
+    hold_continue: float = 0.9
+    """Planner env: chance that a hold subgoal is drawn again at the next redraw (mean hold 10 s)."""
     hold_stop_speed: float = 1.0
     """Planner env: a hold subgoal counts as reached only below this speed [m/s] (the car stands on it)."""
 
@@ -149,10 +148,6 @@ class IntersectionConfig:
     r_time_hold: float = 0.0
     """Time penalty per step in the planner env while it holds the ego (``hold_probability``): without
     it, rushing to the task exit costs less than waiting on a held point (ours; r_time elsewhere)."""
-    eps_stop: float = 0.1
-    """Planner env, holds only: weight of the potential-based shaping term r_stop, paid for every m/s
-    of speed shed above the speed from which the ego can still stop on the held point (ours; without
-    it PPO never discovered braking, whose only reward came once the car stood on the point)."""
     r_arr: float = 1.0
     """Reward for reaching the subgoal (paper: 1.0)."""
     r_col: float = -1.0

@@ -1,7 +1,7 @@
 """``GCCPPlanner-v0``: the motion-planner's subgoal-conditioned env (paper III-D, r^m).
 
 A subgoal is drawn from the N candidates at reset and every T_m steps (uniformly from those ahead, or
-a "hold": a point to stop on; see ``hold_probability``); the planner drives towards it with the 6
+a "hold" at the candidate nearest the ego; see ``hold_probability``); the planner drives towards it with the 6
 discrete actions. The episode ends on a collision, leaving the road, reaching
 the task's exit (or another exit), or the time limit.
 """
@@ -41,30 +41,25 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
 
     def _choose_goal(self) -> None:
         """A candidate drawn uniformly from those ahead and reachable within T_m steps or, with
-        ``hold_probability``, a hold: the nearest candidate ahead that the ego can still stop on by
-        braking, which counts as reached only when the car stands on it. A hold goes on for another
-        period with ``hold_continue``, on the same point, and pays r_arr again for every period the car
-        stands there; a car that overshoots it is not paid."""
+        ``hold_probability`` (``hold_continue`` right after a hold), a hold: the candidate nearest the
+        ego, which counts as reached only when the car stands on it. A car that waits keeps the same
+        nearest lattice point, so waiting is paid r_arr every period; a car that drives on is not."""
         cfg = self.config
-        if self._holding and self.np_random.random() < cfg.hold_continue:
-            assert self._subgoal is not None
-            self._arrived = False
-            return
-        self._holding = bool(self.np_random.random() < cfg.hold_probability)
+        threshold = cfg.hold_continue if self._holding else cfg.hold_probability
+        self._holding = bool(self.np_random.random() < threshold)
         candidates = self.world.subgoal_candidates()
         ego = self.world.ego
         offsets = candidates[:, :2] - (ego.x, ego.y)
         distances = np.hypot(*offsets.T)
-        forward = offsets @ (np.cos(ego.heading), np.sin(ego.heading))
         if self._holding:
-            stopping = ego.speed**2 / (2.0 * cfg.deceleration)
-            stoppable = (forward > 0) & (distances >= stopping)
-            index = int(np.argmin(np.where(stoppable, distances, np.inf) if stoppable.any() else distances))
+            index = int(np.argmin(distances))
         else:
             # Only candidates still ahead, so that a goal beside or behind the ego always means
             # "hold"; preferably those reachable within the period at cruise speed, so that driving on
             # pays (r_arr) and ending the episode early does not.
-            ahead = (forward > 0) & (distances > cfg.subgoal_reach_radius)
+            ahead = (offsets @ (np.cos(ego.heading), np.sin(ego.heading)) > 0) & (
+                distances > cfg.subgoal_reach_radius
+            )
             reach = cfg.cruise_speed * cfg.decision_period * DT + cfg.subgoal_reach_radius
             reachable = ahead & (distances <= reach)
             pool = reachable if reachable.any() else ahead
@@ -85,14 +80,6 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         self._arrived |= arrived
         return arrived
 
-    def _overspeed(self) -> float:
-        """Speed [m/s] above the highest from which braking still stops the ego on the subgoal (all of
-        it once the subgoal is beside or behind)."""
-        assert self._subgoal is not None
-        ego = self.world.ego
-        ahead = float(np.dot(self._subgoal[:2] - (ego.x, ego.y), (np.cos(ego.heading), np.sin(ego.heading))))
-        return max(ego.speed - np.sqrt(2.0 * self.config.deceleration * max(ahead, 0.0)), 0.0)
-
     def _after_step(self) -> None:
         if self.world.steps % self.config.decision_period == 0:
             self._choose_goal()
@@ -102,15 +89,12 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         action = self._check_action(action)
         assert self._subgoal is not None
         before = goal_errors(self.world.ego, self._subgoal)
-        overspeed = self._overspeed()
         outcome = self.world.step(int(action))
         after = goal_errors(self.world.ego, self._subgoal)
         arrived = self._goal_arrived(outcome, after)
         terms = planner_reward(self.config, before, after, arrived, outcome.crashed, outcome.offroad)
-        terms["r_stop"] = 0.0
         if self._holding:
             terms["r_time"] = self.config.r_time_hold
-            terms["r_stop"] = self.config.eps_stop * (overspeed - self._overspeed())
         terminated = outcome.terminal
         truncated = not terminated and self._truncated()
         info: dict[str, Any] = {"reward_terms": terms, "goal_reached": arrived}

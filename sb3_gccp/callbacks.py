@@ -35,6 +35,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from gccp_envs.config import reject_unknown_keys
+from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.prediction import (
     ConstantVelocityPredictor,
     GCCPMask,
@@ -79,6 +80,11 @@ class GCCPSettings:
     """Decisions kept in the replay buffer D (paper: not given)."""
     save_every_episodes: int = 100
     """Episodes between checkpoints (model, predictor, optimiser, replay buffer)."""
+    mask_margin: float = 0.0
+    """Extra length and width [m] of every box in the collision check (paper: none)."""
+    mask_extrapolate_steps: int = 0
+    """Steps checked beyond the predicted T_f, every vehicle keeping its last predicted velocity
+    (paper: 0, a 1 s check; see the README for why a longer one helps at our speeds)."""
 
     def __post_init__(self) -> None:
         if self.predictor not in PREDICTORS:
@@ -87,7 +93,9 @@ class GCCPSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"gccp.{name} must be a positive integer, got {value!r}")
-        for name in ("mask_after_episodes", "predictor_steps_per_episode"):
+        if not isinstance(self.mask_margin, (int, float)) or self.mask_margin < 0:
+            raise ValueError(f"gccp.mask_margin must be a non-negative number, got {self.mask_margin!r}")
+        for name in ("mask_after_episodes", "predictor_steps_per_episode", "mask_extrapolate_steps"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(f"gccp.{name} must be a non-negative integer, got {value!r}")
@@ -115,6 +123,10 @@ class GCCPSettings:
         values = asdict(self)
         values["predictor_kwargs"] = dict(self.predictor_kwargs)
         return values
+
+    def make_mask(self, predictor: nn.Module) -> GCCPMask:
+        """The GCCP mask function of these settings around ``predictor``."""
+        return GCCPMask(predictor, CollisionChecker(margin=self.mask_margin), self.mask_extrapolate_steps)
 
     def make_predictor(self) -> nn.Module | None:
         """A fresh predictor of this variant (``None`` without GCCP)."""
@@ -236,16 +248,7 @@ class GCCPCallback(BaseCallback):
             self.buffer.end_episode()
             self._losses.append(self.trainer.on_episode_end(self.buffer, self.rng))
         self.episodes += 1
-        row = {
-            "episode": self.episodes,
-            "timesteps": self.num_timesteps,
-            "task": info.get("task", ""),
-            "success": int(bool(info.get("is_success"))),
-            "crashed": int(bool(info.get("crashed"))),
-            "offroad": int(bool(info.get("offroad"))),
-            "timeout": int(bool(info.get("timeout"))),
-            "masks_on": int(self.masks_on),
-        }
+        row = episode_row(info, self.episodes, self.num_timesteps, self.masks_on)
         self.history.append(row)
         self._recent.append(row)
         if self._bar is not None:
@@ -265,7 +268,7 @@ class GCCPCallback(BaseCallback):
         """Give every env worker a GCCP mask with a copy of the current predictor."""
         assert self.predictor is not None
         predictor = copy.deepcopy(self.predictor).cpu().eval()
-        self.training_env.env_method("set_mask_fn", GCCPMask(predictor))
+        self.training_env.env_method("set_mask_fn", self.settings.make_mask(predictor))
 
     # --- saving and resuming -------------------------------------------------------------------
     def save(self, folder: Path, with_model: bool = False) -> None:
@@ -296,6 +299,20 @@ class GCCPCallback(BaseCallback):
             self.trainer.gradient_steps = int(state["gradient_steps"])
         self.history = read_episodes(folder / "episodes.csv")
         self._recent.extend(self.history[-100:])
+
+
+def episode_row(info: Mapping[str, Any], episode: int, timesteps: int, masks_on: bool) -> dict[str, Any]:
+    """One row of ``episodes.csv`` from the final ``info`` of an episode."""
+    return {
+        "episode": episode,
+        "timesteps": timesteps,
+        "task": info.get("task", ""),
+        "success": int(bool(info.get("is_success"))),
+        "crashed": int(bool(info.get("crashed"))),
+        "offroad": int(bool(info.get("offroad"))),
+        "timeout": int(bool(info.get("timeout"))),
+        "masks_on": int(masks_on),
+    }
 
 
 def write_episodes(rows: list[dict[str, Any]], path: Path) -> None:

@@ -8,6 +8,10 @@ Commands:
 - ``sb3_gccp train --stage planner|decider|predictor|all``: train a stage from a zoo-style YAML file
   (``all``: the planner, then the decision-maker with GCCP on the side).
 - ``sb3_gccp evaluate``: run a trained hierarchy on seeded traffic and print the paper's table.
+- ``sb3_gccp video``: write a GIF or MP4 of one episode of a trained hierarchy, every 0.1 s step with
+  the subgoal candidates, the GCCP mask, the chosen subgoal and the predicted trajectories.
+- ``sb3_gccp reproduce --preset quick|paper``: train every method of the paper's Tables I and II on the
+  same episode budget, evaluate them on the same traffic flows, write the tables and Figs. 5-8.
 
 Errors in the input are reported on one line and exit with status 2.
 """
@@ -25,7 +29,7 @@ from typing import Any
 
 import yaml
 
-from gccp_envs.config import TASKS, IntersectionConfig
+from gccp_envs.config import DT, TASKS, IntersectionConfig
 
 
 class CLIError(Exception):
@@ -186,6 +190,66 @@ def _evaluate(args: argparse.Namespace) -> None:
         )
 
 
+def _video(args: argparse.Namespace) -> None:
+    from sb3_gccp.hierarchy import load_hierarchy
+    from sb3_gccp.video import check_video_path, record_episode, write_video
+
+    if args.task not in TASKS:
+        raise CLIError(f"unknown task {args.task!r}: expected one of {', '.join(TASKS)}")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise CLIError("--max-steps must be at least 1")
+    if args.fps <= 0:
+        raise CLIError("--fps must be positive")
+    try:
+        check_video_path(args.out)
+        hierarchy = load_hierarchy(args.model)
+        env = hierarchy.make_env(parse_assignments(args.set))
+        decider = hierarchy.decider_policy()
+    except (ValueError, TypeError, OSError) as err:
+        raise CLIError(str(err)) from err
+    recording = record_episode(env, decider, args.task, args.seed, args.max_steps)
+    try:
+        write_video(recording.frames, args.out, args.fps)
+    except (ValueError, OSError) as err:
+        raise CLIError(str(err)) from err
+    print(f"wrote {args.out} ({len(recording.frames)} frames at {args.fps:g} fps)")
+    print(
+        f"hierarchy {args.model} (GCCP: {hierarchy.predictor}), task {args.task}, seed {args.seed}: "
+        f"{recording.outcome} after {recording.steps} steps "
+        f"({recording.steps * DT:.1f} s, {recording.decisions} decisions)"
+    )
+
+
+def _reproduce(args: argparse.Namespace) -> None:
+    from sb3_gccp.hyperparams import HyperparamsError
+    from sb3_gccp.reproduce import METHODS, ReproduceRequest, prepare, reproduce
+
+    request = ReproduceRequest(
+        preset=args.preset,
+        overrides=parse_assignments(args.set),
+        seeds=tuple(args.seeds),
+        methods=tuple(args.methods or METHODS),
+        planner=Path(args.planner) if args.planner else None,
+        out=Path(args.out),
+        log_folder=Path(args.log_folder),
+        eval_seed=args.eval_seed,
+        torch_threads=args.torch_threads,
+        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        argv=["sb3_gccp", *sys.argv[1:]],
+    )
+    try:
+        plan = prepare(request)
+    except (ValueError, TypeError, OSError) as err:
+        raise CLIError(str(err)) from err
+    try:
+        results = reproduce(plan)
+    except HyperparamsError as err:
+        raise CLIError(str(err)) from err
+    print(
+        f"done in {results['wall_clock_s']:.0f} s: {request.out}/table1.md, table2.md, results.json, figures"
+    )
+
+
 def _train_predictor(args: argparse.Namespace) -> None:
     from dataclasses import asdict
 
@@ -320,6 +384,62 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
     )
     evaluate.set_defaults(func=_evaluate)
+
+    video = sub.add_parser("video", help="write a GIF or MP4 of one episode of a trained hierarchy")
+    video.add_argument(
+        "--model", required=True, help="a decider run folder, pretrained/, or a decider .zip inside one"
+    )
+    video.add_argument("--task", default="left", help="left, straight or right")
+    video.add_argument("--seed", type=int, default=0, help="traffic seed")
+    video.add_argument("--out", required=True, help="the video file: .gif, or .mp4 (needs imageio-ffmpeg)")
+    video.add_argument(
+        "--max-steps", type=int, help="stop after this many 0.1 s steps (default: the episode)"
+    )
+    video.add_argument("--fps", type=float, default=10.0, help="frames per second (10: real time)")
+    video.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
+    )
+    video.set_defaults(func=_video)
+
+    reproduce = sub.add_parser(
+        "reproduce", help="train and evaluate every method of the paper's Tables I and II; tables, figures"
+    )
+    reproduce.add_argument(
+        "--preset",
+        default="paper",
+        help="budgets: quick (the whole pipeline in minutes) or paper (the paper's, hours per seed)",
+    )
+    reproduce.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (default: 0)")
+    reproduce.add_argument(
+        "--methods",
+        nargs="+",
+        help="a subset of: ours with_cv without_gccp without_goal dqn ppo sac_discrete (default: all)",
+    )
+    reproduce.add_argument(
+        "--planner", help="motion-planner .zip for every hierarchy variant (default: train one per seed)"
+    )
+    reproduce.add_argument("--out", default="results", help="tables, CSV/JSON, figures and configs go here")
+    reproduce.add_argument(
+        "--log-folder", default="runs", help="runs go to LOG_FOLDER/reproduce/PRESET/seedK/METHOD"
+    )
+    reproduce.add_argument("--eval-seed", type=int, default=0, help="first traffic seed of the evaluation")
+    reproduce.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help="torch threads of the learners (default 1: the networks are small, and more threads slow "
+        "them down on a busy machine)",
+    )
+    reproduce.add_argument("--no-progress", action="store_true", help="no progress bars")
+    reproduce.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a preset field (repeatable); dotted for maps: --set episodes=100 "
+        "--set world.duration=20 --set hyperparams.dqn.buffer_size=10000",
+    )
+    reproduce.set_defaults(func=_reproduce)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")
     world_options(config)

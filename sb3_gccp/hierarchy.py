@@ -6,6 +6,8 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     decider: decider.zip
     predictor: learned            # learned, no_goal, cv or none (w/o GCCP)
     predictor_weights: predictor.pt
+    mask_margin: 0.0              # GCCP collision check: box margin [m] and steps beyond T_f
+    mask_extrapolate_steps: 0     #   (both optional, 0 if absent)
     world: {...}                  # the world config the decider was trained on
 """
 
@@ -19,6 +21,7 @@ from typing import Any
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.callbacks import LEARNED, PREDICTORS
+from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.frozen import FrozenPolicy
 from sb3_gccp.hyperparams import read_yaml_mapping
 from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, load_predictor
@@ -38,6 +41,8 @@ class Hierarchy:
     predictor: str
     predictor_weights: Path | None
     world: Mapping[str, Any] = field(default_factory=dict)
+    mask_margin: float = 0.0
+    mask_extrapolate_steps: int = 0
 
     def make_env(
         self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
@@ -55,10 +60,11 @@ class Hierarchy:
         """The GCCP module of this hierarchy (``None`` without GCCP)."""
         if self.predictor == "none":
             return None
+        checker = CollisionChecker(margin=self.mask_margin)
         if self.predictor == "cv":
-            return GCCPMask(ConstantVelocityPredictor())
+            return GCCPMask(ConstantVelocityPredictor(), checker, self.mask_extrapolate_steps)
         assert self.predictor_weights is not None
-        return GCCPMask(load_predictor(self.predictor_weights))
+        return GCCPMask(load_predictor(self.predictor_weights), checker, self.mask_extrapolate_steps)
 
     def decider_policy(self) -> FrozenPolicy:
         """The decision-maker, deterministic."""
@@ -90,4 +96,12 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
     for needed in (decider, planner, weights):
         if needed is not None and not needed.is_file():
             raise ValueError(f"{spec_file} names a missing file: {needed}")
-    return Hierarchy(decider, planner, predictor, weights, dict(spec.get("world") or {}))
+    return Hierarchy(
+        decider,
+        planner,
+        predictor,
+        weights,
+        dict(spec.get("world") or {}),
+        float(spec.get("mask_margin", 0.0)),
+        int(spec.get("mask_extrapolate_steps", 0)),
+    )

@@ -47,6 +47,8 @@ POLICY_ALIASES = {
     "DecisionMakerPolicy": "sb3_gccp.policies.DecisionMakerPolicy",
 }
 """Short policy names accepted in the ``policy`` key, besides dotted paths and the algorithm's own."""
+POLICY_KWARGS_CLASSES = ("features_extractor_class", "activation_fn", "optimizer_class")
+"""``policy_kwargs`` keys whose value is a class, named in YAML by its dotted import path."""
 
 
 class HyperparamsError(ValueError):
@@ -165,6 +167,35 @@ def ppo_gradient_steps_per_timestep(settings: Mapping[str, Any], defaults: Mappi
     n_epochs = int(settings.get("n_epochs", defaults["n_epochs"]))
     batch_size = int(settings.get("batch_size", defaults["batch_size"]))
     return n_epochs / batch_size
+
+
+def off_policy_gradient_steps_per_timestep(settings: Mapping[str, Any], defaults: Mapping[str, Any]) -> float:
+    """Optimiser steps of an SB3 off-policy algorithm per environment step.
+
+    ``gradient_steps`` follow every ``train_freq`` steps of each of the ``n_envs`` envs; -1 means one per
+    collected transition.
+
+    :raises HyperparamsError: ``train_freq`` counted in episodes, which has no fixed rate
+    """
+    train_freq = settings.get("train_freq", defaults["train_freq"])
+    frequency, unit = (train_freq, "step") if isinstance(train_freq, int) else tuple(train_freq)
+    if unit != "step":
+        raise HyperparamsError(f"a learning-rate step schedule needs train_freq in steps, got {train_freq!r}")
+    gradient_steps = int(settings.get("gradient_steps", defaults["gradient_steps"]))
+    if gradient_steps < 0:
+        return 1.0
+    return gradient_steps / (int(frequency) * int(settings.get("n_envs", 1)))
+
+
+def resolve_policy_kwargs(policy_kwargs: Mapping[str, Any]) -> dict[str, Any]:
+    """``policy_kwargs`` with the classes of :data:`POLICY_KWARGS_CLASSES` imported from their dotted paths.
+
+    :raises HyperparamsError: a class that cannot be imported
+    """
+    return {
+        key: resolve_class(value) if key in POLICY_KWARGS_CLASSES and isinstance(value, str) else value
+        for key, value in policy_kwargs.items()
+    }
 
 
 def constructor_defaults(algorithm: type) -> dict[str, Any]:

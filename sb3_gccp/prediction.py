@@ -211,11 +211,18 @@ class GCCPMask:
     :param predictor: a :class:`TrajectoryPredictor`, :class:`ConstantVelocityPredictor` or any module
         with their call signature
     :param checker: the collision checker (default :class:`~sb3_gccp.collision.CollisionChecker`)
+    :param extrapolate_steps: check this many 0.1 s steps beyond the predicted T_f as well, every
+        vehicle going on at the speed and heading of its last predicted step (0: the paper)
     """
 
-    def __init__(self, predictor: nn.Module, checker: CollisionChecker | None = None) -> None:
+    def __init__(
+        self, predictor: nn.Module, checker: CollisionChecker | None = None, extrapolate_steps: int = 0
+    ) -> None:
+        if extrapolate_steps < 0:
+            raise ValueError(f"extrapolate_steps must be non-negative, got {extrapolate_steps!r}")
         self.predictor = predictor.eval()
         self.checker = checker or CollisionChecker()
+        self.extrapolate_steps = extrapolate_steps
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
@@ -245,8 +252,27 @@ class GCCPMask:
         present = self.present(obs)
         if not present.any():  # nothing to collide with: skip the prediction
             return np.ones(len(obs["subgoals"]), bool)
-        future = self.predict(obs)
+        future = extrapolate(self.predict(obs), self.extrapolate_steps)
         return self.checker.action_mask(future[:, 0], future[:, 1:], present)
+
+
+def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
+    """Predicted poses followed by ``steps`` more, each vehicle keeping the displacement per step and
+    the heading of its last predicted step (the first step's displacement from the origin when T_f is 1).
+
+    :param future: (..., T_f, 3) poses (x, y, heading)
+    :param steps: extra steps
+    :return: (..., T_f + steps, 3)
+    """
+    if steps == 0:
+        return future
+    last = future[..., -1:, :]
+    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
+    step = last[..., :2] - previous[..., :2]
+    k = np.arange(1, steps + 1, dtype=future.dtype)[:, None]
+    xy = last[..., :2] + k * step
+    heading = np.broadcast_to(last[..., 2:], (*last.shape[:-2], steps, 1))
+    return np.concatenate([future, np.concatenate([xy, heading], -1)], axis=-2)
 
 
 def save_predictor(predictor: TrajectoryPredictor, path: str | Path) -> None:

@@ -21,7 +21,7 @@ import json
 import shlex
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,8 @@ from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions
 DECIDER_ENV_ID = "GCCPDecider-v0"
 HELDOUT_SEED_OFFSET = 1_000_000
 """Held-out episodes draw their traffic seeds from ``seed + HELDOUT_SEED_OFFSET``."""
+SCENE_EPISODES = 20
+"""Episodes searched for each scene of Fig. 8."""
 
 
 @dataclass
@@ -224,9 +226,25 @@ def plot_errors(curves: list[dict[str, Any]], cv: Mapping[str, float], path: Pat
 
 
 def plot_scene(
-    predictor: nn.Module, world: IntersectionConfig, seed: int, path: Path, planner: Path | None
+    predictor: nn.Module,
+    world: IntersectionConfig,
+    seed: int,
+    path: Path,
+    planner: Path | None,
+    tasks: Sequence[str | None] = (None,),
+    decider: Callable[[dict[str, np.ndarray], np.ndarray], int] | None = None,
 ) -> None:
-    """Paper Fig. 8: one scene with neighbours, the predicted futures under two subgoals."""
+    """Paper Fig. 8: scenes with neighbours, the predicted futures under two subgoals each.
+
+    Scene i is searched in the episodes from seed ``seed + SCENE_EPISODES i`` on: the first decision
+    with at least two neighbours in view of which GCCP masks a subgoal (shown next to an allowed one),
+    else the first with two neighbours in view (its nearest and farthest subgoal), else the last one.
+
+    :param tasks: one scene (a row of the figure) per entry: the task of its episode, None for the
+        world's own task draw
+    :param decider: drives the episodes (subgoal from observation and mask) so that later decisions are
+        searched too; None searches the first decision of each episode only
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,17 +252,60 @@ def plot_scene(
 
     env = GCCPDeciderEnv(config=world, planner=FrozenPolicy(planner, threads=None) if planner else None)
     gccp = GCCPMask(predictor, CollisionChecker())
+    fig, axes = plt.subplots(len(tasks), 2, figsize=(10, 5 * len(tasks)), squeeze=False)
+    for i, (row, task) in enumerate(zip(axes, tasks, strict=True)):
+        obs = _busy_scene(env, gccp, seed + SCENE_EPISODES * i, task, world.bev_extent / 2, decider)
+        _draw_scene(row, obs, gccp, world, "" if task is None else f"{task}: ")
+    fig.suptitle("Goal-conditioned predictions: ego (green), neighbours (orange), 1 s at 0.1 s")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _busy_scene(
+    env: GCCPDeciderEnv,
+    gccp: GCCPMask,
+    seed: int,
+    task: str | None,
+    extent: float,
+    decider: Callable[[dict[str, np.ndarray], np.ndarray], int] | None,
+) -> dict[str, np.ndarray]:
+    """A decision to draw (see :func:`plot_scene`)."""
     obs: dict[str, np.ndarray] = {}
-    for k in range(50):  # the first decision with at least two neighbours ahead
-        obs, _ = env.reset(seed=seed + k)
-        if gccp.present(obs).sum() >= 2:
-            break
+    busy: dict[str, np.ndarray] | None = None
+    for k in range(SCENE_EPISODES):
+        obs, _ = env.reset(seed=seed + k, options=None if task is None else {"task": task})
+        while True:
+            present = obs["history_mask"][1:].any(-1)
+            near = np.abs(obs["history"][1:, -1, 4:6]).max(-1) <= extent
+            if (present & near).sum() >= 2:
+                if not gccp(obs).all():
+                    return obs
+                busy = obs if busy is None else busy
+            if decider is None:
+                break
+            obs, _, terminated, truncated, _ = env.step(decider(obs, env.action_masks()))
+            if terminated or truncated:
+                break
+    return obs if busy is None else busy
+
+
+def _draw_scene(
+    axes: Any, obs: dict[str, np.ndarray], gccp: GCCPMask, world: IntersectionConfig, title: str
+) -> None:
+    """One scene in two panels: the predicted futures under two subgoals."""
     future = gccp.predict(obs)
     allowed = gccp(obs)
     subgoals = obs["subgoals"]
-    pair = (int(np.argmin(subgoals[:, 0])), int(np.argmax(subgoals[:, 0])))
+    ahead = subgoals[:, 0]
+    if allowed.all() or not allowed.any():
+        pair = (int(np.argmin(ahead)), int(np.argmax(ahead)))
+    else:  # the farthest allowed and the farthest masked subgoal
+        pair = (
+            int(np.argmax(np.where(allowed, ahead, -np.inf))),
+            int(np.argmax(np.where(allowed, -np.inf, ahead))),
+        )
     extent = world.bev_extent / 2
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
     for ax, index in zip(axes, pair, strict=True):
         ax.imshow(obs["bev"][0], cmap="Greys", vmin=-1, vmax=2, extent=(-extent, extent, -extent, extent))
         present = obs["history_mask"].any(-1)
@@ -256,15 +317,11 @@ def plot_scene(
         ax.plot(subgoals[:, 1], subgoals[:, 0], "o", color="tab:blue", ms=4, alpha=0.4)
         ax.plot(subgoals[index, 1], subgoals[index, 0], "*", color="gold", ms=14, mec="black")
         verdict = "safe" if allowed[index] else "masked: predicted collision"
-        ax.set_title(f"subgoal {index} ({subgoals[index, 0]:.1f} m ahead): {verdict}", fontsize=9)
+        ax.set_title(f"{title}subgoal {index} ({subgoals[index, 0]:.1f} m ahead): {verdict}", fontsize=9)
         ax.set_xlim(-extent, extent)
         ax.set_ylim(-extent, extent)
         ax.set_xlabel("right of ego [m]")
         ax.set_ylabel("ahead of ego [m]")
-    fig.suptitle("Goal-conditioned predictions: ego (green), neighbours (orange), 1 s at 0.1 s")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def _draw_box(ax: Any, x: float, y: float, heading: float, color: str) -> None:

@@ -62,6 +62,8 @@ class StageRequest:
     """The frozen motion-planner ``.zip`` (decider stage)."""
     max_episodes: int | None = None
     """Stop the planner stage after this many episodes over all workers (N_g); None: ``n_timesteps``."""
+    run_dir: Path | None = None
+    """The folder of a new run; None: a new ``<log_folder>/<stage>/<env_id>_<seed>_<time>``."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
 
@@ -134,7 +136,8 @@ def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict
         if request.n_timesteps is not None:
             settings["n_timesteps"] = request.n_timesteps
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        return request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}", settings, request.seed
+        run_dir = request.run_dir or request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}"
+        return run_dir, settings, request.seed
     run_dir = request.resume
     if not (run_dir / "config.yml").is_file():
         raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")

@@ -14,6 +14,7 @@ from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.planner_env import GCCPPlannerEnv
+from sb3_gccp.hierarchy import load_hierarchy
 
 TINY_DECIDER = {
     "GCCPDecider-v0": {
@@ -78,6 +79,7 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
     assert json.loads((run / "metrics.json").read_text())["episodes"] == 3
     hierarchy = yaml.safe_load((run / "hierarchy.yml").read_text())
     assert hierarchy["predictor"] == "learned" and hierarchy["world"]["duration"] == 2.0
+    assert hierarchy["mask_margin"] == 0.0 and hierarchy["mask_extrapolate_steps"] == 0
 
     # The same seed gives the same table; a decider .zip inside the run folder works as well.
     evaluate = ("evaluate", "--episodes-per-task", "1", "--tasks", "left,right", "--seed", "5")
@@ -181,3 +183,15 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "(GCCP: cv)" in result.stdout
+
+
+def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
+    (tmp_path / "decider.zip").write_bytes(b"not read here")
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv"}
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    paper = load_hierarchy(tmp_path).mask_fn()
+    assert paper is not None and paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
+    spec.update(mask_margin=1.0, mask_extrapolate_steps=10)
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    longer = load_hierarchy(tmp_path).mask_fn()
+    assert longer is not None and longer.checker.margin == 1.0 and longer.extrapolate_steps == 10

@@ -15,7 +15,13 @@ from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.callbacks import GCCPCallback, GCCPSettings
 from sb3_gccp.decider_stage import rolling_rate, training_metrics
 from sb3_gccp.policies import DecisionMakerPolicy
-from sb3_gccp.prediction import GCCPMask, PredictorConfig, TrajectoryPredictor, current_poses
+from sb3_gccp.prediction import (
+    ConstantVelocityPredictor,
+    GCCPMask,
+    PredictorConfig,
+    TrajectoryPredictor,
+    current_poses,
+)
 from sb3_gccp.replay import EpisodeReplayBuffer
 
 TINY_PREDICTOR = {"encoder": TINY_ENCODER, "decoder_hidden": 8}
@@ -136,6 +142,11 @@ def test_pushed_weights_change_the_workers_masks():
         ({"predictor": "magic"}, "gccp.predictor must be one of learned, no_goal, cv, none, got 'magic'"),
         ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
         ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
+        ({"mask_margin": -0.5}, "gccp.mask_margin must be a non-negative number, got -0.5"),
+        (
+            {"mask_extrapolate_steps": 1.5},
+            "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
+        ),
         (
             {"predictor_kwargs": {"decoder_width": 3}},
             "unknown predictor config key(s): 'decoder_width' (did you mean 'decoder_hidden'?)",
@@ -145,6 +156,14 @@ def test_pushed_weights_change_the_workers_masks():
 def test_bad_settings_name_the_problem(values, message):
     with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
         GCCPSettings.from_dict(values)
+
+
+def test_settings_build_the_mask_with_their_margin_and_extrapolation():
+    mask = GCCPSettings(mask_margin=1.0, mask_extrapolate_steps=5).make_mask(ConstantVelocityPredictor())
+    assert mask.checker.margin == 1.0 and mask.checker.ego_size == (6.0, 3.0)
+    assert mask.extrapolate_steps == 5
+    paper = GCCPSettings().make_mask(ConstantVelocityPredictor())
+    assert paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
 
 
 def test_rolling_rate_and_the_episode_where_success_passes_70_percent():

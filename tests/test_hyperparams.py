@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 from sb3_contrib import MaskablePPO
+from torch import nn
 
 from sb3_gccp.hyperparams import (
     HyperparamsError,
@@ -11,7 +12,9 @@ from sb3_gccp.hyperparams import (
     check_keys,
     default_config_file,
     load_hyperparams,
+    off_policy_gradient_steps_per_timestep,
     resolve_class,
+    resolve_policy_kwargs,
     resolve_schedule,
 )
 
@@ -77,3 +80,30 @@ def test_step_schedule_switches_after_the_paper_gradient_steps():
     assert resolve_schedule(3e-4, "learning_rate", 1.0, 10) == 3e-4
     with pytest.raises(HyperparamsError, match="learning_rate must be a number"):
         resolve_schedule("lin_1e-4", "learning_rate", 1.0, 10)
+
+
+def test_off_policy_gradient_steps_per_timestep():
+    defaults = {"train_freq": 1, "gradient_steps": 1}
+    assert off_policy_gradient_steps_per_timestep({}, defaults) == 1.0
+    assert off_policy_gradient_steps_per_timestep({"train_freq": 4, "n_envs": 2}, defaults) == 1 / 8
+    assert (
+        off_policy_gradient_steps_per_timestep({"train_freq": [8, "step"], "gradient_steps": 2}, defaults)
+        == 1 / 4
+    )
+    # -1: one gradient step per collected transition, whatever the number of envs.
+    assert off_policy_gradient_steps_per_timestep({"gradient_steps": -1, "n_envs": 4}, defaults) == 1.0
+    with pytest.raises(HyperparamsError, match="train_freq in steps"):
+        off_policy_gradient_steps_per_timestep({"train_freq": [1, "episode"]}, defaults)
+
+
+def test_policy_kwargs_classes_are_imported_from_dotted_paths():
+    resolved = resolve_policy_kwargs(
+        {"activation_fn": "torch.nn.Tanh", "net_arch": [8], "features_extractor_kwargs": {"name": "x.Y"}}
+    )
+    assert resolved == {
+        "activation_fn": nn.Tanh,
+        "net_arch": [8],
+        "features_extractor_kwargs": {"name": "x.Y"},
+    }
+    with pytest.raises(HyperparamsError, match=r"cannot import 'sb3_gccp\.policies\.Nope'"):
+        resolve_policy_kwargs({"features_extractor_class": "sb3_gccp.policies.Nope"})

@@ -10,11 +10,13 @@ from helpers import TINY_ENCODER as TINY
 from torch import nn
 
 from gccp_envs.config import DT
+from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.prediction import (
     ConstantVelocityPredictor,
     GCCPMask,
     PredictorConfig,
     TrajectoryPredictor,
+    extrapolate,
     load_predictor,
     save_predictor,
 )
@@ -189,6 +191,32 @@ def test_mask_is_per_candidate():
     predicted = mask.predict(obs)
     assert predicted.shape == (G, V, T_F, 3)
     np.testing.assert_allclose(predicted[:, 0, -1], obs["subgoals"], atol=1e-5)
+
+
+def test_extrapolate_continues_the_last_predicted_step():
+    future = np.zeros((2, 3, 4, 3), np.float32)
+    future[..., 0] = np.arange(1, 5) * 0.5  # 0.5 m per step along x
+    future[..., 2] = 0.3
+    longer = extrapolate(future, 3)
+    assert longer.shape == (2, 3, 7, 3)
+    np.testing.assert_array_equal(longer[..., :4, :], future)
+    np.testing.assert_allclose(longer[0, 0, 4:, 0], [2.5, 3.0, 3.5])
+    np.testing.assert_allclose(longer[..., 4:, 2], 0.3)
+    assert extrapolate(future, 0) is future
+    with pytest.raises(ValueError, match="extrapolate_steps"):
+        GCCPMask(ConstantVelocityPredictor(), extrapolate_steps=-1)
+
+
+def test_mask_extrapolation_and_margin_see_conflicts_the_paper_check_misses():
+    # Head-on, 30 m apart at 8 m/s each: they meet after about 1.6 s, beyond T_f = 1 s.
+    obs = scene([(0.0, 0.0, 0.0, 8.0), (30.0, 0.0, np.pi, 8.0)])
+    assert GCCPMask(ConstantVelocityPredictor())(obs).all()
+    assert not GCCPMask(ConstantVelocityPredictor(), extrapolate_steps=10)(obs).any()
+    # A car standing 14 m ahead: with 2 m added to every box, candidates must stop 7 m short of it.
+    stand = scene([(0.0, 0.0, 0.0, 8.0), (14.0, 0.0, np.pi, 0.0)])
+    np.testing.assert_array_equal(
+        GCCPMask(TowardsGoal(), CollisionChecker(margin=2.0))(stand), stand["subgoals"][:, 0] < 7.0
+    )
 
 
 def test_mask_allows_everything_without_neighbours():

@@ -1,0 +1,218 @@
+"""``sb3_gccp reproduce``: every method end to end on a tiny budget, resuming, bad input, the tables."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from helpers import TINY_ENCODER
+
+from sb3_gccp.cli import main
+from sb3_gccp.hyperparams import default_config_file, load_hyperparams
+from sb3_gccp.reproduce import (
+    METHODS,
+    PRESETS,
+    TABLE_1,
+    TABLE_2,
+    aggregate,
+    format_results_table,
+    method_settings,
+    planner_settings,
+)
+
+TINY = [
+    "episodes=2",
+    "mask_after_episodes=1",
+    "episodes_per_task=1",
+    "heldout_episodes=1",
+    "planner_timesteps=32",
+    f"encoder={yaml.safe_dump(TINY_ENCODER, default_flow_style=True).strip()}",
+    "world.duration=2.0",
+    "hyperparams.planner.n_steps=16",
+    "hyperparams.planner.batch_size=16",
+    "hyperparams.hierarchy.n_steps=4",
+    "hyperparams.hierarchy.batch_size=4",
+    "hyperparams.ppo.n_steps=8",
+    "hyperparams.ppo.batch_size=8",
+    "hyperparams.dqn.learning_starts=5",
+    "hyperparams.dqn.buffer_size=100",
+    "hyperparams.dqn.batch_size=8",
+    "hyperparams.sac_discrete.learning_starts=5",
+    "hyperparams.sac_discrete.buffer_size=100",
+    "hyperparams.sac_discrete.batch_size=8",
+]
+"""The quick preset shrunk to seconds: 2 episodes of 2 s per method, a 32-step planner, tiny networks."""
+FIGURES = ("fig5_baselines", "fig6_ablations", "fig7_predictor_errors", "fig8_predictions")
+
+
+def reproduce(cwd: Path) -> subprocess.CompletedProcess[str]:
+    overrides = [arg for item in TINY for arg in ("--set", item)]
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sb3_gccp.cli",
+            "reproduce",
+            "--preset",
+            "quick",
+            "--torch-threads",
+            "1",
+            *overrides,
+        ],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def reproduced(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess[str]]:
+    folder = tmp_path_factory.mktemp("reproduce")
+    return folder, reproduce(folder)
+
+
+def test_quick_preset_trains_evaluates_and_writes_tables_data_and_figures(reproduced):
+    folder, result = reproduced
+    assert result.returncode == 0, result.stderr
+    out, root = folder / "results", folder / "runs" / "reproduce" / "quick"
+    assert "[1/8] seed 0 planner: training for 32 steps" in result.stdout
+    assert "[8/8] seed 0 sac_discrete: training for 2 episodes" in result.stdout
+
+    for stem, names in (("table1", TABLE_1), ("table2", TABLE_2)):
+        table = (out / f"{stem}.md").read_text()
+        for name in names:
+            assert f"\n| {METHODS[name].label} | " in table, (stem, name)
+        assert "| method | left S/C | straight S/C | right S/C | overall S/C | timeout % |" in table
+    for figure in FIGURES:
+        assert (out / f"{figure}.png").stat().st_size > 10_000, figure
+
+    with (out / "results.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert {(r["method"], r["task"]) for r in rows} == {
+        (m, t) for m in METHODS for t in ("left", "straight", "right", "overall")
+    }
+    results = json.loads((out / "results.json").read_text())
+    assert results["budget"]["episodes_per_method"] == 2
+    assert results["budget"]["planner_pretraining"]["0"]["timesteps"] == 32
+    assert set(results["predictor_errors"]["0"]["errors"]) == {"learned", "no_goal", "cv"}
+
+    # The same budget for every method, the same traffic flows for every method's evaluation.
+    flows = set()
+    for name in METHODS:
+        run = root / "seed0" / name
+        assert json.loads((run / "training.json").read_text())["episodes"] == 2, name
+        with (run / "episodes.csv").open() as file:
+            assert len(list(csv.DictReader(file))) == 2, name
+        episodes = json.loads((run / "evaluation.json").read_text())["episodes"]
+        flows.add(tuple((e["task"], e["seed"]) for e in episodes))
+    assert flows == {(("left", 0), ("straight", 0), ("right", 0))}
+    # The four hierarchy variants differ in their GCCP predictor and share one planner.
+    for name in ("ours", "with_cv", "without_gccp", "without_goal"):
+        run = root / "seed0" / name
+        assert yaml.safe_load((run / "hierarchy.yml").read_text())["predictor"] == METHODS[name].predictor
+        assert (run / "planner.zip").read_bytes() == (root / "seed0" / "planner" / "planner.zip").read_bytes()
+
+
+def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(reproduced):
+    folder, first = reproduced
+    assert first.returncode == 0, first.stderr
+    root = folder / "runs" / "reproduce" / "quick" / "seed0"
+    ours_model = (root / "ours" / "decider.zip").stat().st_mtime_ns
+    (root / "dqn" / "training.json").unlink()  # as if interrupted while training
+
+    result = reproduce(folder)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("finished before, skipped") == 7
+    assert "seed 0 dqn: training for 2 episodes" in result.stdout
+    assert "seed 0 dqn: an unfinished run starts over" in result.stdout
+    assert (root / "ours" / "decider.zip").stat().st_mtime_ns == ours_model
+    assert (root / "dqn" / "training.json").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--preset", "fast"], "unknown preset 'fast': expected quick or paper"),
+        (["--methods", "ours", "dqm"], "unknown method(s) 'dqm' (did you mean 'dqn'?)"),
+        (["--seeds", "0", "0"], "--seeds must be distinct non-negative integers"),
+        (["--planner", "none.zip"], "planner not found: none.zip"),
+        (["--set", "episods=3"], "unknown preset key(s): 'episods' (did you mean 'episodes'?)"),
+        (["--set", "episodes=0"], "preset episodes must be a positive integer, got 0"),
+        (["--set", "world.spawn_probabilty=0.1"], "unknown intersection config key(s)"),
+        (["--set", "hyperparams.dqn.buffer_sise=5"], "unknown hyperparameter(s): 'buffer_sise'"),
+        (["--set", "hyperparams.td3.tau=1"], "preset hyperparams: unknown group(s) 'td3'"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2_before_anything_is_written(
+    tmp_path, monkeypatch, capsys, args, message
+):
+    monkeypatch.chdir(tmp_path)
+    assert main(["reproduce", "--preset", "quick", *args]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"sb3_gccp: error: {message}")
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_changed_training_budget_does_not_reuse_finished_runs(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    root = tmp_path / "runs" / "reproduce" / "quick"
+    root.mkdir(parents=True)
+    (root / "preset.yml").write_text(yaml.safe_dump(PRESETS["quick"].to_dict()))
+    assert main(["reproduce", "--preset", "quick", "--methods", "ours", "--set", "episodes=7"]) == 2
+    assert "(episodes differ): give the same settings or another --log-folder" in capsys.readouterr().err
+
+
+def test_paper_preset_configs_change_only_the_budget_and_the_gccp_variant():
+    paper = PRESETS["paper"]
+    decider = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPDecider-v0")
+    for name in ("ours", "with_cv", "without_gccp", "without_goal"):
+        entry = method_settings(METHODS[name], paper)
+        gccp = entry.pop("gccp")
+        assert entry == {k: v for k, v in decider.items() if k != "gccp"}
+        assert gccp == {
+            **decider["gccp"],
+            "predictor": METHODS[name].predictor,
+            "n_episodes": 2000,
+            "mask_after_episodes": 800,
+        }
+    for name in ("dqn", "ppo", "sac_discrete"):
+        entry = method_settings(METHODS[name], paper)
+        shipped = load_hyperparams(default_config_file(f"{name}.yml"), "GCCPFlat-v0")
+        assert entry == {**shipped, "n_timesteps": 2000 * 300}  # the cap: 2000 episodes of 30 s
+        assert (
+            entry["policy_kwargs"]["features_extractor_class"] == "sb3_gccp.policies.PlannerFeaturesExtractor"
+        )
+    assert planner_settings(paper)["n_timesteps"] == 100_000
+
+
+def test_quick_preset_shrinks_every_network_and_merges_dotted_overrides():
+    quick = PRESETS["quick"].with_overrides({"hyperparams.dqn.batch_size": 8, "world.duration": 5.0})
+    dqn = method_settings(METHODS["dqn"], quick)
+    assert dqn["batch_size"] == 8 and dqn["buffer_size"] == 2000  # merged into the preset's own map
+    assert dqn["policy_kwargs"]["features_extractor_kwargs"]["encoder"] == quick.encoder
+    assert dqn["n_timesteps"] == 6 * 50
+    ours = method_settings(METHODS["ours"], quick)
+    assert ours["policy_kwargs"]["encoder"] == ours["gccp"]["predictor_kwargs"]["encoder"] == quick.encoder
+    assert ours["env_kwargs"] == {"task": "mixed", "duration": 5.0}
+
+
+def test_tables_give_mean_and_sample_std_over_seeds():
+    def table(left: float, crashed: float, timeout: float) -> dict[str, dict[str, float]]:
+        rates = {"offroad": 0.0, "wrong_exit": 0.0, "episodes": 50.0}
+        row = {"success": left, "crashed": crashed, "timeout": timeout, **rates}
+        return {task: dict(row) for task in ("left", "straight", "right", "overall")}
+
+    seeds = [table(50.0, 10.0, 0.0), table(70.0, 20.0, 4.0)]
+    text = format_results_table([("ours", seeds), ("DQN", [table(22.0, 28.7, 1.0)])])
+    lines = text.splitlines()
+    assert lines[0] == "| method | left S/C | straight S/C | right S/C | overall S/C | timeout % |"
+    assert lines[2] == "| ours | " + " | ".join(["60.0±14.1 / 15.0±7.1"] * 4) + " | 2.0±2.8 |"
+    assert lines[3] == "| DQN | " + " | ".join(["22.0 / 28.7"] * 4) + " | 1.0 |"
+    spread = aggregate(seeds)["overall"]["success"]
+    assert spread["mean"] == pytest.approx(60.0) and spread["std"] == pytest.approx(14.142, abs=1e-3)
