@@ -221,7 +221,6 @@ def _video(args: argparse.Namespace) -> None:
 
 
 def _reproduce(args: argparse.Namespace) -> None:
-    from sb3_gccp.hyperparams import HyperparamsError
     from sb3_gccp.reproduce import METHODS, ReproduceRequest, prepare, reproduce
 
     request = ReproduceRequest(
@@ -243,7 +242,7 @@ def _reproduce(args: argparse.Namespace) -> None:
         raise CLIError(str(err)) from err
     try:
         results = reproduce(plan)
-    except HyperparamsError as err:
+    except (ValueError, OSError) as err:  # HyperparamsError included
         raise CLIError(str(err)) from err
     print(
         f"done in {results['wall_clock_s']:.0f} s: {request.out}/table1.md, table2.md, results.json, figures"
@@ -416,7 +415,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="a subset of: ours with_cv without_gccp without_goal dqn ppo sac_discrete (default: all)",
     )
     reproduce.add_argument(
-        "--planner", help="motion-planner .zip for every hierarchy variant (default: train one per seed)"
+        "--planner",
+        help="motion-planner .zip, or 'scripted', for every hierarchy variant (default: train one per seed)",
     )
     reproduce.add_argument("--out", default="results", help="tables, CSV/JSON, figures and configs go here")
     reproduce.add_argument(

@@ -42,6 +42,7 @@ import math
 import shutil
 import sys
 import time
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -66,7 +67,7 @@ from sb3_gccp.baselines import (
 from sb3_gccp.callbacks import read_episodes
 from sb3_gccp.decider_stage import DECIDER_ENV_ID, gccp_settings, rolling_rate, train_decider
 from sb3_gccp.evaluation import evaluate, summarize
-from sb3_gccp.hierarchy import load_hierarchy
+from sb3_gccp.hierarchy import SCRIPTED, load_hierarchy
 from sb3_gccp.hyperparams import check_keys, default_config_file, load_hyperparams, resolve_policy_kwargs
 from sb3_gccp.networks import EncoderConfig
 from sb3_gccp.prediction import ConstantVelocityPredictor, load_predictor
@@ -409,8 +410,11 @@ def prepare(request: ReproduceRequest) -> Plan:
         raise ValueError("--eval-seed must be non-negative")
     if request.torch_threads is not None and request.torch_threads < 1:
         raise ValueError("--torch-threads must be at least 1")
-    if request.planner is not None and not request.planner.is_file():
-        raise ValueError(f"planner not found: {request.planner}")
+    if request.planner is not None and request.planner != Path(SCRIPTED):
+        if not request.planner.is_file():
+            raise ValueError(f"planner not found: {request.planner} (give a planner .zip or 'scripted')")
+        if not zipfile.is_zipfile(request.planner):
+            raise ValueError(f"not an SB3 .zip: {request.planner}")
     preset = PRESETS[request.preset].with_overrides(request.overrides)
     methods = [m for m in METHODS.values() if m.name in request.methods]
     files: dict[str, dict[str, Any]] = {}
@@ -488,6 +492,8 @@ def planner_budget(path: Path, monitor: Path | None) -> dict[str, Any]:
     episodes = None
     if monitor is not None and monitor.is_dir():
         episodes = len(load_results(str(monitor)))
+    if path == Path(SCRIPTED):
+        return {"planner": SCRIPTED, "timesteps": 0, "episodes": 0}
     timesteps = int(MaskablePPO.load(path, device="cpu").num_timesteps)
     return {"planner": str(path), "timesteps": timesteps, "episodes": episodes}
 
@@ -516,11 +522,7 @@ def train_method_once(
     run_dir = plan.root / f"seed{seed}" / method.name
     record = _finished(run_dir)
     if record is not None:
-        if (
-            method.is_hierarchy
-            and planner is not None
-            and not filecmp.cmp(run_dir / "planner.zip", planner, False)
-        ):
+        if method.is_hierarchy and planner is not None and not _same_planner(run_dir, planner):
             raise ValueError(
                 f"{run_dir} was trained over another planner than {planner}: "
                 "give the same --planner or another --log-folder"
@@ -544,6 +546,14 @@ def train_method_once(
     (run_dir / TRAINING_FILE).write_text(json.dumps(record, indent=2) + "\n")
     print(f"{label}: trained {record['episodes']} episodes in {record['wall_clock_s']:.0f} s", flush=True)
     return record
+
+
+def _same_planner(run_dir: Path, planner: Path) -> bool:
+    """Whether a finished hierarchy run was trained over ``planner`` (a ``.zip`` or 'scripted')."""
+    trained = run_dir / "planner.zip"
+    if planner == Path(SCRIPTED):
+        return not trained.is_file()
+    return trained.is_file() and filecmp.cmp(trained, planner, False)
 
 
 def _train_hierarchy(plan: Plan, method: Method, seed: int, planner: Path | None, run_dir: Path) -> None:

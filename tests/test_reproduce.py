@@ -50,8 +50,8 @@ TINY = [
 FIGURES = ("fig5_baselines", "fig6_ablations", "fig7_predictor_errors", "fig8_predictions")
 
 
-def reproduce(cwd: Path) -> subprocess.CompletedProcess[str]:
-    overrides = [arg for item in TINY for arg in ("--set", item)]
+def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    overrides = [*(arg for item in TINY for arg in ("--set", item)), *extra]
     return subprocess.run(
         [
             sys.executable,
@@ -216,3 +216,21 @@ def test_tables_give_mean_and_sample_std_over_seeds():
     assert lines[3] == "| DQN | " + " | ".join(["22.0 / 28.7"] * 4) + " | 1.0 |"
     spread = aggregate(seeds)["overall"]["success"]
     assert spread["mean"] == pytest.approx(60.0) and spread["std"] == pytest.approx(14.142, abs=1e-3)
+
+
+def test_hierarchy_variants_over_the_scripted_planner(tmp_path):
+    result = reproduce(tmp_path, "--planner", "scripted", "--methods", "ours", "without_gccp")
+    assert result.returncode == 0, result.stderr
+    assert "planner: training" not in result.stdout
+    root = tmp_path / "runs" / "reproduce" / "quick" / "seed0"
+    for name in ("ours", "without_gccp"):
+        assert yaml.safe_load((root / name / "hierarchy.yml").read_text())["planner"] == "scripted"
+        assert not (root / name / "planner.zip").exists()
+    results = json.loads((tmp_path / "results" / "results.json").read_text())
+    assert results["budget"]["planner_pretraining"]["0"]["planner"] == "scripted"
+    # Not a planner: one line. A trained planner over runs made with the scripted one: refused.
+    bad = reproduce(tmp_path, "--planner", str(tmp_path / "results" / "results.json"), "--methods", "ours")
+    assert bad.returncode == 2 and "not an SB3 .zip" in bad.stderr
+    planner = Path(__file__).resolve().parents[1] / "pretrained" / "planner.zip"
+    again = reproduce(tmp_path, "--planner", str(planner), "--methods", "ours")
+    assert again.returncode == 2 and "was trained over another planner" in again.stderr
