@@ -174,14 +174,19 @@ def _evaluate(args: argparse.Namespace) -> None:
     try:
         hierarchy = load_hierarchy(args.model)
         env = hierarchy.make_env(parse_assignments(args.set))
-        decider = hierarchy.decider_policy()
+        decider = hierarchy.decider_policy(deterministic=not args.stochastic)
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
+    if args.stochastic:
+        import torch as th
+
+        th.manual_seed(args.seed)
     results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=sys.stderr.isatty())
     table = summarize(results)
     print(
         f"hierarchy {args.model} (GCCP: {hierarchy.predictor}), "
         f"{args.episodes_per_task} episodes per task from seed {args.seed}"
+        + (", stochastic decisions" if args.stochastic else "")
     )
     print(format_table(table))
     if args.json:
@@ -379,6 +384,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--episodes-per-task", type=int, default=50)
     evaluate.add_argument("--seed", type=int, default=0, help="first traffic seed")
     evaluate.add_argument("--json", help="also write the table and every episode to this JSON file")
+    evaluate.add_argument(
+        "--stochastic",
+        action="store_true",
+        help="sample subgoals from the decision-maker's policy (seeded by --seed) instead of its argmax",
+    )
     evaluate.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
     )

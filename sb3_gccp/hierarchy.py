@@ -66,9 +66,9 @@ class Hierarchy:
         assert self.predictor_weights is not None
         return GCCPMask(load_predictor(self.predictor_weights), checker, self.mask_extrapolate_steps)
 
-    def decider_policy(self) -> FrozenPolicy:
-        """The decision-maker, deterministic."""
-        return FrozenPolicy(self.decider)
+    def decider_policy(self, deterministic: bool = True) -> FrozenPolicy:
+        """The decision-maker: its most likely subgoal, or (``deterministic=False``) one sampled."""
+        return FrozenPolicy(self.decider, deterministic=deterministic)
 
 
 def load_hierarchy(path: str | Path) -> Hierarchy:

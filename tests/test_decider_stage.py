@@ -89,6 +89,10 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
     assert "| overall | 2 |" in first.stdout
     assert first.stdout.splitlines()[1:] == second.stdout.splitlines()[1:]
     assert set(json.loads((tmp_path / "table.json").read_text())["table"]) == {"left", "right", "overall"}
+    # Sampled decisions are seeded too.
+    sampled = [sb3_gccp(*evaluate, "--model", str(run), "--stochastic", cwd=tmp_path) for _ in range(2)]
+    assert sampled[0].returncode == 0, sampled[0].stderr
+    assert "stochastic decisions" in sampled[0].stdout and sampled[0].stdout == sampled[1].stdout
 
     # A longer budget in the run's config plays the part of an interrupted run: resume continues from
     # the checkpoint with the predictor, its optimiser and the replay buffer.
