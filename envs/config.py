@@ -164,6 +164,10 @@ class IntersectionConfig:
     """Reward when the task goal is reached (paper: 3)."""
     r_subgoal: float = 0.5
     """Reward when the subgoal is reached within T_m steps (paper: 0.5)."""
+    r_subgoal_needs_travel: bool = False
+    """Pay r_subgoal only for a subgoal farther than the reach radius when chosen, so that holding the
+    ego on the candidate it stands on is not paid (ours; paper: False, and then waiting on our lattice
+    costs r_near + r_subgoal = 0 per decision)."""
     r_near: float = -0.5
     """Constant of the subgoal-distance term (paper: -0.5)."""
     eps_s: float = 0.05

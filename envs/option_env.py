@@ -140,7 +140,8 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             truncated = not outcome.terminal and self._truncated()
             if outcome.terminal or truncated:
                 break
-        terms = decider_reward(cfg, outcome.success, reached, distance)
+        paid = reached and (distance > cfg.subgoal_reach_radius or not cfg.r_subgoal_needs_travel)
+        terms = decider_reward(cfg, outcome.success, paid, distance)
         future, future_mask = world.decision_future(record)
         info: dict[str, Any] = {
             "reward_terms": terms,

@@ -176,3 +176,17 @@ def test_planner_step_callback_follows_every_step_of_an_option():
     env.set_planner_step_callback(None)
     env.step(3)
     assert len(seen) == 10
+
+
+@pytest.mark.parametrize(("needs_travel", "r_subgoal"), [(False, 0.5), (True, 0.0)])
+def test_holding_on_the_candidate_under_the_ego_is_paid_only_without_needs_travel(needs_travel, r_subgoal):
+    env, obs = make(seed=2, spawn_probability=0.0, r_subgoal_needs_travel=needs_travel)
+    for _ in range(4):  # hold until the ego stands on its nearest candidate
+        nearest = int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))
+        obs, _, _, _, info = env.step(nearest)
+    assert env.world.ego.speed == 0.0
+    nearest = int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))
+    assert np.hypot(*obs["subgoals"][nearest, :2]) <= env.config.subgoal_reach_radius
+    *_, info = env.step(nearest)
+    assert info["subgoal_reached"]
+    assert info["reward_terms"]["r_subgoal"] == r_subgoal
