@@ -199,7 +199,7 @@ def test_quick_preset_shrinks_every_network_and_merges_dotted_overrides():
     assert dqn["n_timesteps"] == 6 * 50
     ours = method_settings(METHODS["ours"], quick)
     assert ours["policy_kwargs"]["encoder"] == ours["gccp"]["predictor_kwargs"]["encoder"] == quick.encoder
-    assert ours["env_kwargs"] == {"task": "mixed", "duration": 5.0}
+    assert ours["env_kwargs"] == {"task": "mixed", "r_subgoal_needs_travel": True, "duration": 5.0}
 
 
 def test_tables_give_mean_and_sample_std_over_seeds():
