@@ -15,7 +15,6 @@ The baselines have no action masks: they are evaluated with ``model.predict(obs,
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,24 +22,13 @@ import numpy as np
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from tqdm.auto import tqdm
 
 from gccp_envs.config import DT, IntersectionConfig
 from sb3_gccp.callbacks import episode_row, write_episodes
 from sb3_gccp.evaluation import Policy
-from sb3_gccp.hyperparams import (
-    check_keys,
-    constructor_defaults,
-    load_hyperparams,
-    off_policy_gradient_steps_per_timestep,
-    ppo_gradient_steps_per_timestep,
-    resolve_class,
-    resolve_policy_kwargs,
-    resolve_schedule,
-)
+from sb3_gccp.hyperparams import check_keys, load_hyperparams, resolve_class
+from sb3_gccp.stages import algorithm_kwargs, make_run_env
 
 FLAT_ENV_ID = "GCCPFlat-v0"
 BASELINES = {
@@ -99,27 +87,6 @@ class EpisodeRecorder(BaseCallback):
             self._bar.close()
 
 
-def baseline_kwargs(
-    settings: Mapping[str, Any], algorithm: type[BaseAlgorithm], n_timesteps: int
-) -> dict[str, Any]:
-    """Constructor arguments of a baseline from its resolved zoo entry: classes imported, step schedules
-    placed on the algorithm's gradient steps for a run of ``n_timesteps``."""
-    kwargs = {k: v for k, v in settings.items() if k not in ("n_timesteps", "n_envs", "env_kwargs")}
-    defaults = constructor_defaults(algorithm)
-    if issubclass(algorithm, OffPolicyAlgorithm):
-        per_timestep = off_policy_gradient_steps_per_timestep(settings, defaults)
-    else:
-        per_timestep = ppo_gradient_steps_per_timestep(settings, defaults)
-    for key in ("learning_rate", "clip_range"):
-        if key in kwargs:
-            kwargs[key] = resolve_schedule(kwargs[key], key, per_timestep, n_timesteps)
-    kwargs["policy_kwargs"] = resolve_policy_kwargs(kwargs.get("policy_kwargs") or {})
-    kwargs["policy"] = resolve_class(
-        str(settings.get("policy", "MultiInputPolicy")), algorithm.policy_aliases
-    )
-    return kwargs
-
-
 def train_baseline(
     name: str,
     config_file: Path,
@@ -143,17 +110,10 @@ def train_baseline(
     check_keys(settings, algorithm)
     world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     n_timesteps, n_envs = int(settings.get("n_timesteps", 1)), int(settings.get("n_envs", 1))
-    kwargs = baseline_kwargs(settings, algorithm, n_timesteps)
+    kwargs = algorithm_kwargs(settings, n_timesteps, "MultiInputPolicy", algorithm)
     run_dir.mkdir(parents=True, exist_ok=False)
     (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
-    env = make_vec_env(
-        FLAT_ENV_ID,
-        n_envs=n_envs,
-        seed=seed,
-        env_kwargs={"config": world},
-        monitor_dir=str(run_dir / "monitor"),
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
-    )
+    env = make_run_env(FLAT_ENV_ID, n_envs, seed, world, run_dir)
     recorder = EpisodeRecorder(episodes, description, progress_bar)
     try:
         model = algorithm(env=env, seed=seed, tensorboard_log=str(run_dir / "tb"), **kwargs)

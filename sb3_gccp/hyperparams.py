@@ -187,6 +187,16 @@ def off_policy_gradient_steps_per_timestep(settings: Mapping[str, Any], defaults
     return gradient_steps / (int(frequency) * int(settings.get("n_envs", 1)))
 
 
+def gradient_steps_per_timestep(algorithm: type, settings: Mapping[str, Any]) -> float:
+    """Optimiser steps per environment step of an SB3 off-policy algorithm or of (Maskable)PPO."""
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+
+    defaults = constructor_defaults(algorithm)
+    if issubclass(algorithm, OffPolicyAlgorithm):
+        return off_policy_gradient_steps_per_timestep(settings, defaults)
+    return ppo_gradient_steps_per_timestep(settings, defaults)
+
+
 def resolve_policy_kwargs(policy_kwargs: Mapping[str, Any]) -> dict[str, Any]:
     """``policy_kwargs`` with the classes of :data:`POLICY_KWARGS_CLASSES` imported from their dotted paths.
 

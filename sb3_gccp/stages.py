@@ -25,6 +25,7 @@ from typing import Any
 import torch as th
 import yaml
 from sb3_contrib import MaskablePPO
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, StopTrainingOnMaxEpisodes
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
@@ -33,10 +34,10 @@ from gccp_envs.config import IntersectionConfig
 from sb3_gccp.hyperparams import (
     HyperparamsError,
     check_keys,
-    constructor_defaults,
+    gradient_steps_per_timestep,
     load_hyperparams,
-    ppo_gradient_steps_per_timestep,
     resolve_class,
+    resolve_policy_kwargs,
     resolve_schedule,
 )
 
@@ -91,14 +92,7 @@ def train_planner(request: StageRequest) -> Path:
     world, n_timesteps, n_envs = run_budget(settings)
     if request.resume is None:
         write_run_files(run_dir, settings, request)
-    env = make_vec_env(
-        PLANNER_ENV_ID,
-        n_envs=n_envs,
-        seed=seed,
-        env_kwargs={"config": world},
-        monitor_dir=str(run_dir / "monitor"),
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
-    )
+    env = make_run_env(PLANNER_ENV_ID, n_envs, seed, world, run_dir)
     checkpoint = latest_checkpoint(run_dir) if request.resume is not None else None
     model = make_model(
         env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(settings, n_timesteps)
@@ -170,17 +164,35 @@ def make_model(
 
 
 def algorithm_kwargs(
-    settings: dict[str, Any], n_timesteps: int, default_policy: str = "MotionPlannerPolicy"
+    settings: dict[str, Any],
+    n_timesteps: int,
+    default_policy: str = "MotionPlannerPolicy",
+    algorithm: type[BaseAlgorithm] = MaskablePPO,
 ) -> dict[str, Any]:
-    """Constructor arguments of MaskablePPO from resolved settings."""
-    defaults = constructor_defaults(MaskablePPO)
+    """Constructor arguments of ``algorithm`` from resolved settings: step schedules placed on its
+    gradient steps for a run of ``n_timesteps``, the policy and the classes in ``policy_kwargs`` imported."""
     kwargs = {k: v for k, v in settings.items() if k not in ("n_timesteps", "n_envs", "env_kwargs", "policy")}
-    per_timestep = ppo_gradient_steps_per_timestep(settings, defaults)
+    per_timestep = gradient_steps_per_timestep(algorithm, settings)
     for key in ("learning_rate", "clip_range"):
         if key in kwargs:
             kwargs[key] = resolve_schedule(kwargs[key], key, per_timestep, n_timesteps)
-    kwargs["policy"] = resolve_class(str(settings.get("policy", default_policy)), MaskablePPO.policy_aliases)
+    if kwargs.get("policy_kwargs"):
+        kwargs["policy_kwargs"] = resolve_policy_kwargs(kwargs["policy_kwargs"])
+    kwargs["policy"] = resolve_class(str(settings.get("policy", default_policy)), algorithm.policy_aliases)
     return kwargs
+
+
+def make_run_env(env_id: str, n_envs: int, seed: int, world: IntersectionConfig, run_dir: Path) -> VecEnv:
+    """The training envs of a run: ``n_envs`` workers (subprocesses when more than one) of ``env_id``
+    on ``world``, with Monitor files in ``run_dir/monitor``."""
+    return make_vec_env(
+        env_id,
+        n_envs=n_envs,
+        seed=seed,
+        env_kwargs={"config": world},
+        monitor_dir=str(run_dir / "monitor"),
+        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+    )
 
 
 def write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:

@@ -21,15 +21,12 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from sb3_contrib import MaskablePPO
 from sb3_contrib.common.maskable.callbacks import MaskableEvalCallback
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 
 import sb3_gccp  # noqa: F401  (registers the environments)
 from sb3_gccp.hyperparams import (
     POLICY_ALIASES,
-    constructor_defaults,
-    off_policy_gradient_steps_per_timestep,
-    ppo_gradient_steps_per_timestep,
+    gradient_steps_per_timestep,
     resolve_class,
     resolve_policy_kwargs,
     resolve_schedule,
@@ -56,14 +53,6 @@ class ZooEvalCallback(MaskableEvalCallback):
     def _init_callback(self) -> None:
         super()._init_callback()
         self.use_masking = isinstance(self.model, MaskablePPO)
-
-
-def gradient_steps_per_timestep(algorithm: type, hyperparams: dict[str, Any]) -> float:
-    """Optimiser steps per environment step of an off-policy algorithm or of (Maskable)PPO."""
-    defaults = constructor_defaults(algorithm)
-    if issubclass(algorithm, OffPolicyAlgorithm):
-        return off_policy_gradient_steps_per_timestep(hyperparams, defaults)
-    return ppo_gradient_steps_per_timestep(hyperparams, defaults)
 
 
 def preprocess_hyperparams(

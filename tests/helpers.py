@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 
 from gccp_envs.action import EgoState
@@ -64,3 +68,10 @@ TINY_PLANNER_HYPERPARAMS = {
 
 TINY_ENCODER = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
 """Encoder config fields of a tiny scene encoder, for fast network tests."""
+
+
+def run_zoo(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``python -m sb3_gccp.zoo ARGS`` in a subprocess (rl-zoo3's trainer through our launcher)."""
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.zoo", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )

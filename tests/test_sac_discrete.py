@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-from helpers import TINY_ENCODER
+from helpers import TINY_ENCODER, run_zoo
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from torch import nn
@@ -268,13 +268,7 @@ def test_zoo_launcher_trains_cartpole_and_evaluates(tmp_path):
     (tmp_path / "tiny.yml").write_text(yaml.safe_dump(tiny))
     args = ["--algo", "sac_discrete", "--env", "CartPole-v1", "--conf-file", "tiny.yml", "-f", "logs"]
     args += ["--eval-freq", "100", "--eval-episodes", "1", "--seed", "0", "--vec-env", "dummy"]
-    result = subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.zoo", *args],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    result = run_zoo(tmp_path, *args)
     assert result.returncode == 0, result.stderr[-2000:]
     run = tmp_path / "logs" / "sac_discrete" / "CartPole-v1_1"
     assert (run / "evaluations.npz").is_file()  # evaluated without action masks

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 import yaml
-from helpers import TINY_PLANNER_HYPERPARAMS
+from helpers import TINY_PLANNER_HYPERPARAMS, run_zoo
 
 pytest.importorskip("rl_zoo3")
 
@@ -34,13 +34,7 @@ def test_zoo_launcher_trains_with_masked_evaluation(tmp_path):
         "--vec-env",
         "dummy",
     ]
-    result = subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.zoo", *args],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    result = run_zoo(tmp_path, *args)
     assert result.returncode == 0, result.stderr[-2000:]
     run = tmp_path / "logs" / "ppo_mask" / "GCCPPlanner-v0_1"
     assert (run / "GCCPPlanner-v0.zip").is_file()
