@@ -13,6 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+Size = tuple[FloatArray | float, FloatArray | float]
+"""A box's (length, width): numbers, or arrays broadcast over the boxes."""
 
 
 def wrap_angle(angle: FloatArray | float) -> FloatArray:
@@ -117,9 +119,9 @@ def boxes_overlap(a: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
 
 def poses_overlap(
     a: FloatArray,
-    a_size: tuple[FloatArray | float, FloatArray | float],
+    a_size: Size,
     b: FloatArray,
-    b_size: tuple[FloatArray | float, FloatArray | float],
+    b_size: Size,
 ) -> NDArray[np.bool_]:
     """Separating Axis Theorem test of boxes given as poses, broadcast over leading axes.
 
@@ -133,18 +135,31 @@ def poses_overlap(
     :param b_size: their (length, width)
     :return: whether each pair overlaps
     """
-    ha, wa = np.asarray(a_size[0]) / 2.0, np.asarray(a_size[1]) / 2.0
-    hb, wb = np.asarray(b_size[0]) / 2.0, np.asarray(b_size[1]) / 2.0
+    ha, wa = a_size[0] * 0.5, a_size[1] * 0.5
+    hb, wb = b_size[0] * 0.5, b_size[1] * 0.5
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     ca, sa = np.cos(a[..., 2]), np.sin(a[..., 2])
     cb, sb = np.cos(b[..., 2]), np.sin(b[..., 2])
     cos_d = np.abs(ca * cb + sa * sb)
     sin_d = np.abs(sa * cb - ca * sb)
-    separated = np.abs(dx * ca + dy * sa) >= ha + hb * cos_d + wb * sin_d
-    separated |= np.abs(-dx * sa + dy * ca) >= wa + hb * sin_d + wb * cos_d
-    separated |= np.abs(dx * cb + dy * sb) >= hb + ha * cos_d + wa * sin_d
-    separated |= np.abs(-dx * sb + dy * cb) >= wb + ha * sin_d + wa * cos_d
+    # Half extents along the other box's length and width axes, plus the box's own.
+    reach_long = ha + hb * cos_d + wb * sin_d
+    reach_lat = wa + hb * sin_d + wb * cos_d
+    if _same_scalar_sizes(a_size, b_size):  # the common case: the sums on b's axes are the same
+        reach_long_b, reach_lat_b = reach_long, reach_lat
+    else:
+        reach_long_b, reach_lat_b = hb + ha * cos_d + wa * sin_d, wb + ha * sin_d + wa * cos_d
+    separated = np.abs(dx * ca + dy * sa) >= reach_long
+    separated |= np.abs(dy * ca - dx * sa) >= reach_lat
+    separated |= np.abs(dx * cb + dy * sb) >= reach_long_b
+    separated |= np.abs(dy * cb - dx * sb) >= reach_lat_b
     return ~separated
+
+
+def _same_scalar_sizes(a_size: Size, b_size: Size) -> bool:
+    """Whether two (length, width) pairs are the same two numbers."""
+    scalars = all(isinstance(v, (int, float)) for v in (*a_size, *b_size))  # np.float64 is a float
+    return scalars and tuple(a_size) == tuple(b_size)
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,29 @@ def test_poses_overlap_agrees_with_fcl(x, y, ha, hb, la, wa, lb, wb):
         assert ours == fcl_overlap(a, (la, wa / 2), b, (lb, wb / 2))
 
 
+@given(coordinate, coordinate, angle, angle, length, length)
+def test_poses_overlap_of_same_size_boxes_agrees_with_fcl(x, y, ha, hb, la, wa):
+    # Same (length, width) numbers take the shortcut that reuses a's half-extent sums for b's axes.
+    a, b, size = np.array([0.0, 0.0, ha]), np.array([x, y, hb]), (la, wa / 2)
+    ours = bool(poses_overlap(a, size, b, size))
+    grown = bool(poses_overlap(a, (la + 2e-3, wa / 2 + 2e-3), b, size))
+    shrunk = bool(poses_overlap(a, (la - 2e-3, wa / 2 - 2e-3), b, size))
+    if grown == shrunk:
+        assert ours == fcl_overlap(a, size, b, size)
+
+
+def test_checker_with_explicit_sizes_matches_its_default_sizes():
+    # Per-neighbour size arrays take the general path, the default sizes the same-size shortcut.
+    rng = np.random.default_rng(0)
+    checker = CollisionChecker(margin=0.5)
+    ego, neighbours = rng.uniform(-20, 20, (12, 10, 3)), rng.uniform(-20, 20, (12, 5, 10, 3))
+    present = np.array([True, True, False, True, True])
+    sizes = np.tile(CollisionChecker().neighbour_size, (5, 1))
+    default = checker.collides(ego, neighbours, present)
+    assert 0 < default.sum() < 12
+    np.testing.assert_array_equal(checker.collides(ego, neighbours, present, neighbour_sizes=sizes), default)
+
+
 def straight(x0: float, y0: float, heading: float, speed: float, steps: int = 10) -> np.ndarray:
     t = np.arange(1, steps + 1) * 0.1
     return np.column_stack(
