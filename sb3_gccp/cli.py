@@ -273,6 +273,7 @@ def _train_predictor(args: argparse.Namespace) -> None:
         progress_bar=sys.stderr.isatty() and not args.no_progress,
         torch_threads=args.torch_threads,
         world=world,
+        predictor_kwargs=parse_assignments(args.predictor_set),
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:
@@ -371,6 +372,13 @@ def build_parser() -> argparse.ArgumentParser:
     predictor.add_argument("--heldout-episodes", type=int, default=50, help="held-out episodes to collect")
     predictor.add_argument("--gradient-steps", type=int, default=3000, help="predictor gradient steps")
     predictor.add_argument("--eval-every", type=int, default=250, help="gradient steps between evaluations")
+    predictor.add_argument(
+        "--predictor-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="PredictorConfig field of both learned predictors (repeatable): cv_residual=true",
+    )
     predictor.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="world config key (repeatable)"
     )

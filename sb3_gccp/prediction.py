@@ -10,7 +10,8 @@ The decoder predicts each vehicle's displacement from its current pose, in that 
 (forward, left, heading change), and the pose is added back. A vehicle keeping its lane then has the
 same target wherever it is and however it is oriented in the ego frame, so the decoder learns motion
 rather than the layout of the scene; positions leave the decoder in units of the encoder's
-``distance_scale`` so that its outputs are of order one.
+``distance_scale`` so that its outputs are of order one. With ``cv_residual`` (ours, off by default)
+the decoder gives the correction to the constant-velocity displacement instead.
 
 :class:`ConstantVelocityPredictor` is the "w/ CV" ablation (IV-A-2) and ``goal_condition=False``
 the "w/o goal condition" one. :class:`GCCPMask` turns a predictor and the
@@ -47,6 +48,9 @@ class PredictorConfig:
     """Width of the hidden layer of the 2-layer MLP trajectory decoder (paper: not given)."""
     goal_condition: bool = True
     """Feed the subgoal feature to the decoder; False is the "w/o goal condition" ablation (IV-A-2)."""
+    cv_residual: bool = False
+    """Decode the correction to a constant-velocity future instead of the whole displacement (ours,
+    off by default as in the paper): an untrained decoder then already predicts constant velocity."""
 
     def __post_init__(self) -> None:
         EncoderConfig.from_dict(self.encoder)
@@ -54,8 +58,9 @@ class PredictorConfig:
             raise ValueError(f"decoder_hidden must be a positive integer, got {self.decoder_hidden!r}")
         if self.decoder_hidden < 1:
             raise ValueError(f"decoder_hidden must be a positive integer, got {self.decoder_hidden!r}")
-        if not isinstance(self.goal_condition, bool):
-            raise ValueError(f"goal_condition must be a boolean, got {self.goal_condition!r}")
+        for name in ("goal_condition", "cv_residual"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a boolean, got {getattr(self, name)!r}")
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any] | None = None) -> PredictorConfig:
@@ -101,6 +106,18 @@ def current_poses(obs: Mapping[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
     return pose, state[..., 3]
 
 
+def constant_velocity_displacement(speed: th.Tensor, times: th.Tensor) -> th.Tensor:
+    """Each vehicle's displacement in its own frame when it keeps its heading and speed.
+
+    :param speed: (...) speeds [m/s]
+    :param times: (T,) future times [s]
+    :return: (..., T, 3) (forward, left, heading change)
+    """
+    forward = speed[..., None] * times
+    zeros = th.zeros_like(forward)
+    return th.stack((forward, zeros, zeros), -1)
+
+
 def wrap_angle(angle: th.Tensor) -> th.Tensor:
     """Wrap angles to [-pi, pi) (differentiable almost everywhere).
 
@@ -133,6 +150,7 @@ class TrajectoryPredictor(nn.Module):
     """
 
     output_scale: th.Tensor
+    times: th.Tensor
 
     def __init__(
         self,
@@ -153,6 +171,7 @@ class TrajectoryPredictor(nn.Module):
         )
         scale = th.tensor([config.encoder_config.distance_scale] * 2 + [1.0])
         self.register_buffer("output_scale", scale, persistent=False)
+        self.register_buffer("times", DT * th.arange(1, self.horizon + 1, dtype=th.float32), persistent=False)
 
     def forward(self, obs: Mapping[str, th.Tensor], goals: th.Tensor) -> th.Tensor:
         """Predict the future of every vehicle under each of G subgoals.
@@ -170,7 +189,9 @@ class TrajectoryPredictor(nn.Module):
         features = self.encoder.vehicle_features(scene, goal_features)  # (B, G, V, 5L)
         batch, num_goals, vehicles, _ = features.shape
         local = self.decoder(features).view(batch, num_goals, vehicles, self.horizon, 3) * self.output_scale
-        pose, _ = current_poses(obs)
+        pose, speed = current_poses(obs)
+        if self.config.cv_residual:
+            local = local + constant_velocity_displacement(speed, self.times)[:, None]
         return from_vehicle_frames(local, pose[:, None, :, None])
 
 
@@ -195,9 +216,7 @@ class ConstantVelocityPredictor(nn.Module):
         :return: (B, G, V, T_f, 3) poses in the ego frame (absent vehicles stay at the origin)
         """
         pose, speed = current_poses(obs)
-        distance = speed[..., None] * self.times  # (B, V, T_f)
-        local = th.stack((distance, th.zeros_like(distance), th.zeros_like(distance)), -1)
-        future = from_vehicle_frames(local, pose[:, :, None])
+        future = from_vehicle_frames(constant_velocity_displacement(speed, self.times), pose[:, :, None])
         return future[:, None].expand(goals.shape[0], goals.shape[1], *future.shape[1:])
 
 

@@ -76,6 +76,9 @@ class PredictorRequest:
     progress_bar: bool = True
     torch_threads: int | None = None
     world: dict[str, Any] = field(default_factory=dict)
+    predictor_kwargs: dict[str, Any] = field(default_factory=dict)
+    """:class:`~sb3_gccp.prediction.PredictorConfig` fields of both learned predictors (but
+    ``goal_condition``, which tells them apart)."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
 
@@ -107,6 +110,9 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
             f"--subgoals must be 'random', 'farthest' or a decider .zip; no file {request.subgoals}"
         )
     world = IntersectionConfig.from_dict(request.world)
+    if "goal_condition" in request.predictor_kwargs:
+        raise ValueError("--predictor-set goal_condition: the stage trains both (learned and no_goal)")
+    PredictorConfig.from_dict(request.predictor_kwargs)
     run_dir = (
         request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     )
@@ -125,7 +131,8 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
     predictors: dict[str, nn.Module] = {}
     curves: list[dict[str, float]] = []
     for name, goal_condition in (("learned", True), ("no_goal", False)):
-        predictor = TrajectoryPredictor(PredictorConfig(goal_condition=goal_condition))
+        config = PredictorConfig.from_dict({**request.predictor_kwargs, "goal_condition": goal_condition})
+        predictor = TrajectoryPredictor(config)
         trainer = PredictorTrainer(predictor, request.learning_rate, request.batch_size)
         steps = tqdm(
             range(0, request.gradient_steps, request.eval_every),

@@ -24,10 +24,14 @@ from sb3_gccp.prediction import (
 V, T_H, T_F, G = 6, 10, 10, 12
 
 
-def tiny_predictor(goal_condition: bool = True, seed: int = 0) -> TrajectoryPredictor:
+def tiny_predictor(
+    goal_condition: bool = True, seed: int = 0, cv_residual: bool = False
+) -> TrajectoryPredictor:
     th.manual_seed(seed)
     return TrajectoryPredictor(
-        PredictorConfig(encoder=TINY, decoder_hidden=32, goal_condition=goal_condition)
+        PredictorConfig(
+            encoder=TINY, decoder_hidden=32, goal_condition=goal_condition, cv_residual=cv_residual
+        )
     )
 
 
@@ -158,6 +162,23 @@ def test_constant_velocity_predictor_extrapolates_straight_lines():
             np.testing.assert_allclose(out[0, g, i].numpy(), poses, atol=1e-5)
 
 
+def test_residual_decoder_corrects_constant_velocity():
+    predictor = tiny_predictor(cv_residual=True)
+    last = predictor.decoder[-1]
+    assert isinstance(last, nn.Linear)
+    with th.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+    obs = batch(scene([(0.0, 0.0, 0.0, 8.0), (10.0, 5.0, np.pi / 2, 5.0), (-3.0, 2.0, 3 * np.pi / 4, 2.0)]))
+    cv = ConstantVelocityPredictor()(obs, obs["subgoals"])
+    present = obs["history_mask"][0].any(-1)
+    th.testing.assert_close(predictor(obs, obs["subgoals"])[:, :, present], cv[:, :, present])
+    with th.no_grad():
+        last.bias.view(T_F, 3)[:, 1] = 0.05  # 0.05 * distance_scale = 1 m to the left of the CV future
+    out = predictor(obs, obs["subgoals"])
+    th.testing.assert_close(out[0, 3, 1, :, 0], cv[0, 3, 1, :, 0] - 1.0)  # left of +y is -x
+
+
 @pytest.mark.parametrize(
     "neighbour, allowed",
     [((15.0, 0.0, np.pi, 8.0), False), ((15.0, 6.0, np.pi, 8.0), True), ((-20.0, 0.0, 0.0, 5.0), True)],
@@ -239,13 +260,14 @@ def test_mask_on_a_decider_env_observation():
 
 
 def test_save_and_load_round_trip(tmp_path):
-    predictor = tiny_predictor(goal_condition=False).eval()
+    predictor = tiny_predictor(goal_condition=False, cv_residual=True).eval()
     path = tmp_path / "predictor.pt"
     save_predictor(predictor, path)
     saved = th.load(path, weights_only=True)
     assert saved["config"]["encoder"] == TINY
     loaded = load_predictor(path)
     assert loaded.config == predictor.config and not loaded.config.goal_condition
+    assert loaded.config.cv_residual
     obs = random_scenes(size=2)
     th.testing.assert_close(loaded(obs, obs["subgoals"]), predictor(obs, obs["subgoals"]), rtol=0, atol=0)
 
@@ -257,6 +279,7 @@ def test_save_and_load_round_trip(tmp_path):
         ({"encoder": {"hidden": 8}}, "hidden"),
         ({"decoder_hidden": 0}, "decoder_hidden"),
         ({"goal_condition": "no"}, "goal_condition"),
+        ({"cv_residual": 1}, "cv_residual"),
     ],
 )
 def test_config_rejects_bad_values(values, message):

@@ -58,13 +58,17 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
     assert len(curves) == 1 + 2 * 2  # header, two evaluations per predictor
     assert len(EpisodeReplayBuffer.load(run / "buffer.npz")) > 0
 
-    # The saved buffer trains again, with a share of it held out.
+    assert not load_predictor(run / "predictor.pt").config.cv_residual  # the paper's decoder by default
+
+    # The saved buffer trains again, with a share of it held out, here with residual decoders.
     again = sb3_gccp(
         "train",
         "--stage",
         "predictor",
         "--buffer",
         str(run / "buffer.npz"),
+        "--predictor-set",
+        "cv_residual=true",
         *tiny,
         "--log-folder",
         "again",
@@ -72,6 +76,9 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
     )
     assert again.returncode == 0, again.stderr
     assert "held out" in again.stdout
+    (rerun,) = (tmp_path / "again" / "predictor").iterdir()
+    for name in ("predictor.pt", "predictor_no_goal.pt"):
+        assert load_predictor(rerun / name).config.cv_residual
 
 
 @pytest.mark.parametrize(
@@ -82,6 +89,12 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
         (("--buffer", "missing.npz"), "--buffer: no such file"),
         (("--planner", "PLANNER", "--subgoals", "nearest"), "--subgoals must be"),
         (("--planner", "PLANNER", "--set", "spawn_probabilty=0"), "did you mean 'spawn_probability'"),
+        (("--planner", "PLANNER", "--predictor-set", "cv_residul=true"), "did you mean 'cv_residual'"),
+        (
+            ("--planner", "PLANNER", "--predictor-set", "cv_residual=yes please"),
+            "cv_residual must be a boolean",
+        ),
+        (("--planner", "PLANNER", "--predictor-set", "goal_condition=false"), "the stage trains both"),
     ],
 )
 def test_bad_predictor_stage_input_is_one_line(tmp_path, planner, args, message):
