@@ -28,6 +28,7 @@ from gccp_envs.config import DT, IntersectionConfig
 from sb3_gccp.callbacks import episode_row, write_episodes
 from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, resolve_class
+from sb3_gccp.progress import new_bar
 from sb3_gccp.stages import algorithm_kwargs, make_run_env
 
 FLAT_ENV_ID = "GCCPFlat-v0"
@@ -72,7 +73,7 @@ class EpisodeRecorder(BaseCallback):
         self._bar: tqdm | None = None
 
     def _on_training_start(self) -> None:
-        self._bar = tqdm(total=self.budget, desc=self.description, unit="ep", disable=not self.progress_bar)
+        self._bar = new_bar(total=self.budget, desc=self.description, unit="ep", enabled=self.progress_bar)
 
     def _on_step(self) -> bool:
         for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):

@@ -45,6 +45,7 @@ from sb3_gccp.prediction import (
     save_predictor,
 )
 from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors
+from sb3_gccp.progress import new_bar
 from sb3_gccp.replay import EpisodeReplayBuffer
 
 PREDICTORS = ("learned", "no_goal", "cv", "none")
@@ -195,8 +196,8 @@ class GCCPCallback(BaseCallback):
     # --- SB3 hooks -----------------------------------------------------------------------------
     def _on_training_start(self) -> None:
         self._staged = [[] for _ in range(self.training_env.num_envs)]
-        self._bar = tqdm(
-            total=self.settings.n_episodes, initial=self.episodes, disable=not self.progress_bar, unit="ep"
+        self._bar = new_bar(
+            total=self.settings.n_episodes, initial=self.episodes, enabled=self.progress_bar, unit="ep"
         )
         if self.masks_on:  # resumed after N_m
             self.push_masks()

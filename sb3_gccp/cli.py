@@ -90,7 +90,7 @@ def _rollout(args: argparse.Namespace) -> None:
         raise CLIError("--episodes-per-task must be at least 1")
     env = GCCPDeciderEnv(config)
     decider = FarthestSubgoalDecider()
-    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=sys.stderr.isatty())
+    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed)
     table = summarize(results)
     print(f"scripted hierarchy, {args.episodes_per_task} episodes per task from seed {args.seed}")
     print(format_table(table))
@@ -144,7 +144,7 @@ def _train(args: argparse.Namespace) -> None:
         n_timesteps=args.n_timesteps,
         log_folder=Path(args.log_folder),
         resume=resume,
-        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        progress_bar=not args.no_progress,
         verbose=args.verbose,
         save_freq=args.save_freq,
         torch_threads=args.torch_threads,
@@ -181,7 +181,7 @@ def _evaluate(args: argparse.Namespace) -> None:
         import torch as th
 
         th.manual_seed(args.seed)
-    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=sys.stderr.isatty())
+    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed)
     table = summarize(results)
     print(
         f"hierarchy {args.model} (GCCP: {hierarchy.predictor}), "
@@ -238,7 +238,7 @@ def _reproduce(args: argparse.Namespace) -> None:
         log_folder=Path(args.log_folder),
         eval_seed=args.eval_seed,
         torch_threads=args.torch_threads,
-        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        progress_bar=not args.no_progress,
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:
@@ -270,7 +270,7 @@ def _train_predictor(args: argparse.Namespace) -> None:
         eval_every=args.eval_every,
         seed=args.seed,
         log_folder=Path(args.log_folder),
-        progress_bar=sys.stderr.isatty() and not args.no_progress,
+        progress_bar=not args.no_progress,
         torch_threads=args.torch_threads,
         world=world,
         predictor_kwargs=parse_assignments(args.predictor_set),

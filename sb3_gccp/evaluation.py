@@ -7,7 +7,8 @@ from dataclasses import asdict, dataclass
 
 import gymnasium as gym
 import numpy as np
-from tqdm import tqdm
+
+from sb3_gccp.progress import new_bar
 
 Policy = Callable[[dict[str, np.ndarray], np.ndarray], int]
 """(observation, action mask) -> action."""
@@ -76,7 +77,7 @@ def evaluate(
     """Episodes ``seed .. seed + episodes_per_task - 1`` of every task: the same traffic flows per task."""
     tasks = list(tasks)
     results = []
-    with tqdm(total=len(tasks) * episodes_per_task, disable=not progress, desc="episodes") as bar:
+    with new_bar(total=len(tasks) * episodes_per_task, enabled=progress, desc="episodes") as bar:
         for task in tasks:
             for k in range(episodes_per_task):
                 results.append(run_episode(env, policy, task, seed + k))

@@ -30,7 +30,6 @@ import numpy as np
 import torch as th
 import yaml
 from torch import nn
-from tqdm import tqdm
 
 from gccp_envs.config import DT, IntersectionConfig
 from gccp_envs.option_env import GCCPDeciderEnv
@@ -45,6 +44,7 @@ from sb3_gccp.prediction import (
     save_predictor,
 )
 from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors
+from sb3_gccp.progress import new_bar
 from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions
 
 DECIDER_ENV_ID = "GCCPDecider-v0"
@@ -134,9 +134,9 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
         config = PredictorConfig.from_dict({**request.predictor_kwargs, "goal_condition": goal_condition})
         predictor = TrajectoryPredictor(config)
         trainer = PredictorTrainer(predictor, request.learning_rate, request.batch_size)
-        steps = tqdm(
+        steps = new_bar(
             range(0, request.gradient_steps, request.eval_every),
-            disable=not request.progress_bar,
+            enabled=request.progress_bar,
             desc=f"training {name}",
         )
         for start in steps:

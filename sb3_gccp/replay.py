@@ -19,9 +19,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch as th
-from tqdm.auto import tqdm
 
 from sb3_gccp.prediction import STATE_KEYS
+from sb3_gccp.progress import new_bar
 
 MASK_KEYS = ("history_mask", "routes_mask")
 """State keys holding 0/1 masks, stored as bool."""
@@ -183,7 +183,7 @@ def collect_decisions(
     """
     action_masks = env.unwrapped.action_masks  # type: ignore[attr-defined]
     stored = 0
-    for _ in tqdm(range(episodes), disable=not progress, desc="episodes", unit="ep"):
+    for _ in new_bar(range(episodes), enabled=progress, desc="episodes", unit="ep"):
         obs, _ = env.reset(seed=int(rng.integers(2**31)))
         done = False
         while not done:

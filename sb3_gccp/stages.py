@@ -40,6 +40,7 @@ from sb3_gccp.hyperparams import (
     resolve_policy_kwargs,
     resolve_schedule,
 )
+from sb3_gccp.progress import StepBar
 
 PLANNER_ENV_ID = "GCCPPlanner-v0"
 
@@ -102,6 +103,8 @@ def train_planner(request: StageRequest) -> Path:
             max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
         )
     ]
+    if request.progress_bar:
+        callbacks.append(StepBar(n_timesteps))
     if request.max_episodes is not None:
         # SB3 counts the limit per worker.
         callbacks.append(StopTrainingOnMaxEpisodes(math.ceil(request.max_episodes / n_envs)))
@@ -111,7 +114,6 @@ def train_planner(request: StageRequest) -> Path:
             model.learn(
                 remaining,
                 callback=callbacks,
-                progress_bar=request.progress_bar,
                 reset_num_timesteps=checkpoint is None,
                 tb_log_name="planner",
             )
