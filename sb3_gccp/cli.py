@@ -360,8 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
     train.add_argument(
         "--planner",
-        help="frozen motion-planner .zip (decider and predictor stages); the decider stage also takes "
-        "'scripted' (the scripted pure-pursuit planner)",
+        help="frozen motion-planner .zip (decider and predictor stages), or 'scripted' (the scripted "
+        "pure-pursuit planner)",
     )
     predictor = train.add_argument_group("predictor stage")
     predictor.add_argument("--buffer", help="train on this saved replay buffer (.npz) instead of collecting")

@@ -36,6 +36,7 @@ from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.hierarchy import SCRIPTED
 from sb3_gccp.prediction import (
     ConstantVelocityPredictor,
     GCCPMask,
@@ -59,7 +60,8 @@ class PredictorRequest:
     """What the user asked of the predictor stage."""
 
     planner: Path | None = None
-    """Frozen motion-planner ``.zip`` that drives the ego while decisions are collected."""
+    """Frozen motion-planner ``.zip`` that drives the ego while decisions are collected, or
+    ``scripted`` (the scripted pure-pursuit planner of ``gccp_envs.scripted``)."""
     buffer: Path | None = None
     """A saved replay buffer to train on instead of collecting (its last ``heldout_share`` is held out)."""
     subgoals: str = "random"
@@ -82,6 +84,13 @@ class PredictorRequest:
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
 
+def frozen_planner(planner: Path | None) -> FrozenPolicy | None:
+    """The option env's planner: a frozen ``.zip``, or None (the scripted planner) for ``scripted``/None."""
+    if planner is None or str(planner) == SCRIPTED:
+        return None
+    return FrozenPolicy(planner, threads=None)
+
+
 def subgoal_chooser(
     spec: str, rng: np.random.Generator
 ) -> Callable[[dict[str, np.ndarray], np.ndarray], int]:
@@ -101,7 +110,7 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
         raise ValueError("give --planner (to collect decisions) or --buffer (a saved replay buffer)")
     for name in ("planner", "buffer"):
         path = getattr(request, name)
-        if path is not None and not Path(path).is_file():
+        if path is not None and str(path) != SCRIPTED and not Path(path).is_file():
             raise ValueError(f"--{name}: no such file: {path}")
     if request.gradient_steps < 1 or request.eval_every < 1 or request.episodes < 1:
         raise ValueError("--gradient-steps, --eval-every and --episodes must be positive")
@@ -171,7 +180,7 @@ def _data(
             raise ValueError(f"--buffer holds {len(loaded)} decisions: too few to hold some out")
         return _buffer_of(arrays, slice(0, split)), _buffer_of(arrays, slice(split, None))
     assert request.planner is not None
-    env = GCCPDeciderEnv(config=world, planner=FrozenPolicy(request.planner, threads=None))
+    env = GCCPDeciderEnv(config=world, planner=frozen_planner(request.planner))
     choose = subgoal_chooser(request.subgoals, rng)
     per_episode = int(np.ceil(world.duration / (world.decision_period * DT))) + 1
     train = EpisodeReplayBuffer(capacity=request.episodes * per_episode)
@@ -257,7 +266,7 @@ def plot_scene(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    env = GCCPDeciderEnv(config=world, planner=FrozenPolicy(planner, threads=None) if planner else None)
+    env = GCCPDeciderEnv(config=world, planner=frozen_planner(planner))
     gccp = GCCPMask(predictor, CollisionChecker())
     fig, axes = plt.subplots(len(tasks), 2, figsize=(10, 5 * len(tasks)), squeeze=False)
     for i, (row, task) in enumerate(zip(axes, tasks, strict=True)):

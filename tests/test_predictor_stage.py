@@ -81,6 +81,14 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
         assert load_predictor(rerun / name).config.cv_residual
 
 
+def test_predictor_stage_collects_with_the_scripted_planner(tmp_path):
+    tiny = ("--episodes", "1", "--heldout-episodes", "1", "--gradient-steps", "2", "--eval-every", "2")
+    result = sb3_gccp("train", "--stage", "predictor", "--planner", "scripted", *tiny, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "predictor").iterdir()
+    assert len(EpisodeReplayBuffer.load(run / "heldout.npz")) > 0 and (run / "fig8.png").is_file()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
