@@ -21,12 +21,16 @@ LOG_INTERVAL = 60.0
 
 
 class _LogLines:
-    """A file for tqdm that turns each redraw into one line of stderr."""
+    """A file for tqdm that turns each redraw into one line of stderr (a repeated line only once)."""
+
+    def __init__(self) -> None:
+        self._last = ""
 
     def write(self, text: str) -> None:
         line = text.replace("\r", "").strip()
-        if line:
+        if line and line != self._last:
             sys.stderr.write(line + "\n")
+            self._last = line
 
     def flush(self) -> None:
         sys.stderr.flush()
@@ -41,7 +45,9 @@ def new_bar(iterable: Iterable[T] | None = None, enabled: bool = True, **kwargs:
     """
     if not enabled or sys.stderr.isatty():
         return tqdm(iterable, disable=not enabled, **kwargs)
-    return tqdm(iterable, file=_LogLines(), mininterval=LOG_INTERVAL, ascii=True, **kwargs)
+    return tqdm(
+        iterable, file=_LogLines(), mininterval=LOG_INTERVAL, maxinterval=LOG_INTERVAL, ascii=True, **kwargs
+    )
 
 
 class StepBar(BaseCallback):
