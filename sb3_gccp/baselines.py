@@ -5,6 +5,7 @@ the motion-planner's networks, named in its zoo file (``zoo_configs/dqn.yml``, `
 ``sac_discrete.yml``, entry ``GCCPFlat-v0``). Run folder::
 
     config.yml      the resolved zoo entry
+    baseline.yml    the algorithm's name and the model file (``sb3_gccp evaluate --model RUN`` reads it)
     model.zip       the trained model (``<Algorithm>.load``)
     episodes.csv    one row per training episode, in the layout of the decider's (task, success, crash)
     monitor/, tb/   Monitor CSVs and TensorBoard logs
@@ -18,6 +19,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -27,7 +29,7 @@ from tqdm.auto import tqdm
 from gccp_envs.config import DT, IntersectionConfig
 from sb3_gccp.callbacks import episode_row, write_episodes
 from sb3_gccp.evaluation import Policy
-from sb3_gccp.hyperparams import check_keys, load_hyperparams, resolve_class
+from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
 from sb3_gccp.progress import new_bar
 from sb3_gccp.stages import algorithm_kwargs, make_run_env
 
@@ -39,6 +41,7 @@ BASELINES = {
 }
 """Baseline name (and zoo file ``<name>.yml``) -> its algorithm class, imported when first used."""
 MODEL_FILE = "model.zip"
+BASELINE_FILE = "baseline.yml"
 
 
 def baseline_algorithm(name: str) -> type[BaseAlgorithm]:
@@ -124,8 +127,32 @@ def train_baseline(
     finally:
         env.close()
     model.save(run_dir / MODEL_FILE)
+    write_baseline_spec(run_dir, name)
     write_episodes(recorder.history, run_dir / "episodes.csv")
     return run_dir / MODEL_FILE
+
+
+def write_baseline_spec(run_dir: Path, name: str) -> None:
+    """Name the algorithm and the model of a baseline run folder in its ``baseline.yml``."""
+    (run_dir / BASELINE_FILE).write_text(yaml.safe_dump({"algorithm": name, "model": MODEL_FILE}))
+
+
+def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tuple[gym.Env, Policy, str]:
+    """A baseline run folder (``baseline.yml``, ``config.yml``, the model) ready to evaluate.
+
+    :param overrides: world config keys replacing the run's
+
+    :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
+    :raises ValueError: with a one-line reason when something is missing
+    """
+    spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
+    name, model = str(spec.get("algorithm")), run_dir / str(spec.get("model", MODEL_FILE))
+    baseline_algorithm(name)
+    if not model.is_file():
+        raise ValueError(f"{run_dir / BASELINE_FILE} names a missing file: {model}")
+    settings = read_yaml_mapping(run_dir / "config.yml", "run config")
+    world = IntersectionConfig.from_dict({**(settings.get("env_kwargs") or {}), **(overrides or {})})
+    return gym.make(FLAT_ENV_ID, config=world), baseline_policy(name, model), name
 
 
 def baseline_policy(name: str, path: Path) -> Policy:

@@ -7,7 +7,9 @@ Commands:
 - ``sb3_gccp config``: print every world config key with its value and meaning.
 - ``sb3_gccp train --stage planner|decider|predictor|all``: train a stage from a zoo-style YAML file
   (``all``: the planner, then the decision-maker with GCCP on the side).
-- ``sb3_gccp evaluate``: run a trained hierarchy on seeded traffic and print the paper's table.
+- ``sb3_gccp evaluate``: run a trained hierarchy (or a flat baseline) on seeded traffic and print the
+  paper's table.
+- ``sb3_gccp export``: copy a trained run into a small folder that evaluates on its own.
 - ``sb3_gccp video``: write a GIF or MP4 of one episode of a trained hierarchy, every 0.1 s step with
   the subgoal candidates, the GCCP mask, the chosen subgoal and the predicted trajectories.
 - ``sb3_gccp reproduce --preset quick|paper``: train every method of the paper's Tables I and II on the
@@ -166,15 +168,12 @@ def _train(args: argparse.Namespace) -> None:
 
 def _evaluate(args: argparse.Namespace) -> None:
     from sb3_gccp.evaluation import evaluate, format_table, summarize
-    from sb3_gccp.hierarchy import load_hierarchy
 
     tasks = parse_tasks(args.tasks)
     if args.episodes_per_task < 1:
         raise CLIError("--episodes-per-task must be at least 1")
     try:
-        hierarchy = load_hierarchy(args.model)
-        env = hierarchy.make_env(parse_assignments(args.set))
-        decider = hierarchy.decider_policy(deterministic=not args.stochastic)
+        env, decider, what = _evaluation_target(args)
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
     if args.stochastic:
@@ -184,8 +183,7 @@ def _evaluate(args: argparse.Namespace) -> None:
     results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed)
     table = summarize(results)
     print(
-        f"hierarchy {args.model} (GCCP: {hierarchy.predictor}), "
-        f"{args.episodes_per_task} episodes per task from seed {args.seed}"
+        f"{what}, {args.episodes_per_task} episodes per task from seed {args.seed}"
         + (", stochastic decisions" if args.stochastic else "")
     )
     print(format_table(table))
@@ -193,6 +191,35 @@ def _evaluate(args: argparse.Namespace) -> None:
         Path(args.json).write_text(
             json.dumps({"table": table, "episodes": [dataclasses.asdict(r) for r in results]}, indent=2)
         )
+
+
+def _evaluation_target(args: argparse.Namespace) -> tuple[Any, Any, str]:
+    """The env, the policy and a description of ``--model``: a hierarchy or a flat baseline run."""
+    from sb3_gccp.baselines import BASELINE_FILE, load_baseline
+    from sb3_gccp.hierarchy import load_hierarchy
+
+    model = Path(args.model)
+    folder = model.parent if model.is_file() else model
+    overrides = parse_assignments(args.set)
+    if (folder / BASELINE_FILE).is_file():
+        if args.stochastic:
+            raise CLIError("--stochastic: baselines are evaluated with their most likely action only")
+        env, policy, name = load_baseline(folder, overrides)
+        return env, policy, f"baseline {name} {args.model}"
+    hierarchy = load_hierarchy(args.model)
+    decider = hierarchy.decider_policy(deterministic=not args.stochastic)
+    return hierarchy.make_env(overrides), decider, f"hierarchy {args.model} (GCCP: {hierarchy.predictor})"
+
+
+def _export(args: argparse.Namespace) -> None:
+    from sb3_gccp.export import export_run
+
+    try:
+        written = export_run(args.run, args.out)
+    except (ValueError, OSError) as err:
+        raise CLIError(str(err)) from err
+    size = sum(path.stat().st_size for path in written)
+    print(f"exported {args.run} to {args.out}: {len(written)} files, {size / 1e6:.1f} MB")
 
 
 def _video(args: argparse.Namespace) -> None:
@@ -386,7 +413,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = sub.add_parser("evaluate", help="run a trained hierarchy on seeded traffic flows")
     evaluate.add_argument(
-        "--model", required=True, help="a decider run folder, pretrained/, or a decider .zip inside one"
+        "--model",
+        required=True,
+        help="a decider run folder, pretrained/, a decider .zip inside one, or a baseline run folder "
+        "(baseline.yml)",
     )
     evaluate.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
     evaluate.add_argument("--episodes-per-task", type=int, default=50)
@@ -458,6 +488,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--set world.duration=20 --set hyperparams.dqn.buffer_size=10000",
     )
     reproduce.set_defaults(func=_reproduce)
+
+    export = sub.add_parser(
+        "export", help="copy a trained run into a small folder that evaluates on its own (like pretrained/)"
+    )
+    export.add_argument("run", help="a decider run folder (hierarchy.yml) or a baseline run folder")
+    export.add_argument("out", help="a new (or empty) folder")
+    export.set_defaults(func=_export)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")
     world_options(config)

@@ -48,7 +48,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 import yaml
@@ -57,12 +56,13 @@ from stable_baselines3.common.monitor import load_results
 
 from gccp_envs.config import DT, TASKS, IntersectionConfig, reject_unknown_keys
 from sb3_gccp.baselines import (
+    BASELINE_FILE,
     FLAT_ENV_ID,
-    MODEL_FILE,
     baseline_algorithm,
-    baseline_policy,
+    load_baseline,
     max_episode_steps,
     train_baseline,
+    write_baseline_spec,
 )
 from sb3_gccp.callbacks import read_episodes
 from sb3_gccp.decider_stage import DECIDER_ENV_ID, gccp_settings, rolling_rate, train_decider
@@ -602,9 +602,10 @@ def _evaluation_env_and_policy(method: Method, run_dir: Path) -> tuple[Any, Any]
     if method.is_hierarchy:
         hierarchy = load_hierarchy(run_dir)
         return hierarchy.make_env(), hierarchy.decider_policy()
-    settings = yaml.safe_load((run_dir / "config.yml").read_text())
-    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
-    return gym.make(FLAT_ENV_ID, config=world), baseline_policy(method.name, run_dir / MODEL_FILE)
+    if not (run_dir / BASELINE_FILE).is_file():  # trained before baseline runs named their algorithm
+        write_baseline_spec(run_dir, method.name)
+    env, policy, _ = load_baseline(run_dir)
+    return env, policy
 
 
 def predictor_errors_once(plan: Plan, seed: int) -> dict[str, Any]:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch as th
 import yaml
 from helpers import TINY_ENCODER
 
@@ -133,6 +134,56 @@ def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(repr
     assert "seed 0 dqn: an unfinished run starts over" in result.stdout
     assert (root / "ours" / "decider.zip").stat().st_mtime_ns == ours_model
     assert (root / "dqn" / "training.json").is_file()
+
+
+def sb3_gccp(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+def test_export_gives_small_folders_that_evaluate_like_their_runs(reproduced, tmp_path):
+    folder, result = reproduced
+    assert result.returncode == 0, result.stderr
+    root = folder / "runs" / "reproduce" / "quick" / "seed0"
+    evaluate = ("evaluate", "--tasks", "left", "--episodes-per-task", "2", "--set", "duration=2.0")
+    for name, kind, models in (
+        ("ours", "hierarchy", ("decider", "planner")),
+        ("ppo", "baseline ppo", ("model",)),
+    ):
+        run, out = root / name, tmp_path / name
+        exported = sb3_gccp(tmp_path, "export", str(run), str(out))
+        assert exported.returncode == 0, exported.stderr
+        for model in models:
+            assert (out / f"{model}.zip").stat().st_size < (run / f"{model}.zip").stat().st_size, model
+        assert (out / "episodes.csv").read_bytes() == (run / "episodes.csv").read_bytes()
+        tables = [sb3_gccp(tmp_path, *evaluate, "--model", str(path)) for path in (run, out)]
+        assert all(t.returncode == 0 for t in tables), [t.stderr for t in tables]
+        assert tables[0].stdout.startswith(f"{kind} {run}")
+        assert tables[0].stdout.splitlines()[1:] == tables[1].stdout.splitlines()[1:]
+
+    again = sb3_gccp(tmp_path, "export", str(root / "ours"), str(tmp_path / "ours"))
+    assert again.returncode == 2
+    assert again.stderr.strip().endswith("exists and is not empty: export into a new folder")
+    assert sb3_gccp(tmp_path, "export", str(tmp_path), str(tmp_path / "x")).returncode == 2
+    stochastic = sb3_gccp(tmp_path, *evaluate, "--model", str(tmp_path / "ppo"), "--stochastic")
+    assert stochastic.returncode == 2 and "--stochastic" in stochastic.stderr
+
+
+def test_stripped_model_keeps_its_weights_and_optimizer_settings(reproduced, tmp_path):
+    from sb3_contrib import MaskablePPO
+
+    from sb3_gccp.export import strip_optimizer_state
+
+    folder, _ = reproduced
+    source = folder / "runs" / "reproduce" / "quick" / "seed0" / "planner" / "planner.zip"  # 2 updates
+    strip_optimizer_state(source, tmp_path / "planner.zip")
+    full, stripped = MaskablePPO.load(source), MaskablePPO.load(tmp_path / "planner.zip")
+    for key, value in full.policy.state_dict().items():
+        assert th.equal(value, stripped.policy.state_dict()[key]), key
+    assert full.policy.optimizer.state_dict()["state"] and not stripped.policy.optimizer.state_dict()["state"]
+    groups = stripped.policy.optimizer.state_dict()["param_groups"]
+    assert groups == full.policy.optimizer.state_dict()["param_groups"]
 
 
 @pytest.mark.parametrize(

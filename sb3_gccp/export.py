@@ -1,0 +1,111 @@
+"""``sb3_gccp export``: a trained run as a small folder that evaluates on its own (as in ``pretrained/``).
+
+A hierarchy run (``hierarchy.yml``) gives its decider, planner (unless scripted) and predictor weights
+with a ``hierarchy.yml`` naming the copies; a baseline run (``baseline.yml``) its model and config.
+SB3 ``.zip`` files lose their optimisers' moment estimates on the way (Adam's ``exp_avg`` and
+``exp_avg_sq`` are two thirds of a decider ``.zip``): they load and predict exactly as before, and
+training resumed from an exported model restarts those estimates (a run's ``checkpoints/`` keep them).
+The run's records come along when present: command, config, episodes, evaluation, training curve.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import zipfile
+from pathlib import Path
+
+import torch as th
+import yaml
+
+from sb3_gccp.baselines import BASELINE_FILE, MODEL_FILE, load_baseline
+from sb3_gccp.hierarchy import HIERARCHY_FILE, load_hierarchy
+from sb3_gccp.hyperparams import read_yaml_mapping
+
+RECORDS = (
+    "command.txt",
+    "args.yml",
+    "config.yml",
+    "episodes.csv",
+    "metrics.json",
+    "training.json",
+    "evaluation.json",
+    "training_curve.png",
+)
+"""Files of a run folder copied along when present."""
+
+
+def strip_optimizer_state(source: str | Path, target: str | Path) -> None:
+    """Copy an SB3 ``.zip`` without the per-parameter state of its optimisers (their settings stay).
+
+    :param source: the saved model
+    :param target: where the smaller copy goes
+    """
+    with zipfile.ZipFile(source) as zin, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as zout:
+        for item in zin.infolist():
+            data = zin.read(item)
+            if item.filename.endswith("optimizer.pth"):
+                state = th.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+                buffer = io.BytesIO()
+                th.save({"state": {}, "param_groups": state["param_groups"]}, buffer)
+                data = buffer.getvalue()
+            zout.writestr(item, data)
+
+
+def export_run(run_dir: str | Path, out_dir: str | Path) -> list[Path]:
+    """Export a hierarchy or baseline run folder into a new folder; return the files written.
+
+    :raises ValueError: not a run folder, or ``out_dir`` exists and is not empty (nothing is overwritten)
+    """
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    if not run_dir.is_dir():
+        raise ValueError(f"not a run folder: {run_dir}")
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise ValueError(f"{out_dir} exists and is not empty: export into a new folder")
+    if (run_dir / HIERARCHY_FILE).is_file():
+        plan = _hierarchy_files(run_dir)
+    elif (run_dir / BASELINE_FILE).is_file():
+        plan = _baseline_files(run_dir)
+    else:
+        raise ValueError(f"{run_dir} holds neither {HIERARCHY_FILE} nor {BASELINE_FILE}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, source in plan.items():
+        target = out_dir / name
+        if isinstance(source, str):
+            target.write_text(source)
+        elif name.endswith(".zip"):
+            strip_optimizer_state(source, target)
+        else:
+            shutil.copyfile(source, target)
+        written.append(target)
+    for name in RECORDS:
+        if (run_dir / name).is_file() and name not in plan:
+            shutil.copyfile(run_dir / name, out_dir / name)
+            written.append(out_dir / name)
+    return written
+
+
+def _baseline_files(run_dir: Path) -> dict[str, Path | str]:
+    """Target name -> source file (or text) of a baseline's export, with the rewritten baseline.yml."""
+    load_baseline(run_dir)  # checks the algorithm, the model and the config
+    spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
+    files: dict[str, Path | str] = {"model.zip": run_dir / str(spec.get("model", MODEL_FILE))}
+    files[BASELINE_FILE] = yaml.safe_dump({**spec, "model": "model.zip"}, sort_keys=False)
+    return files
+
+
+def _hierarchy_files(run_dir: Path) -> dict[str, Path | str]:
+    """Target name -> source file (or text) of a hierarchy's export, with the rewritten hierarchy.yml."""
+    hierarchy = load_hierarchy(run_dir)
+    spec = read_yaml_mapping(run_dir / HIERARCHY_FILE, "hierarchy file")
+    files: dict[str, Path | str] = {"decider.zip": hierarchy.decider}
+    spec["decider"] = "decider.zip"
+    if hierarchy.planner is not None:
+        files["planner.zip"] = hierarchy.planner
+        spec["planner"] = "planner.zip"
+    if hierarchy.predictor_weights is not None:
+        files["predictor.pt"] = hierarchy.predictor_weights
+        spec["predictor_weights"] = "predictor.pt"
+    files[HIERARCHY_FILE] = yaml.safe_dump(spec, sort_keys=False)
+    return files
