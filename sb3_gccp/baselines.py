@@ -9,6 +9,8 @@ the motion-planner's networks, named in its zoo file (``zoo_configs/dqn.yml``, `
     model.zip       the trained model (``<Algorithm>.load``)
     episodes.csv    one row per training episode, in the layout of the decider's (task, success, crash)
     monitor/, tb/   Monitor CSVs and TensorBoard logs
+    checkpoints/    every ``save_every_episodes``: model.zip, replay_buffer.pkl (off-policy
+                    algorithms), episodes.csv; ``train_baseline(..., resume=True)`` continues from them
 
 The baselines have no action masks: they are evaluated with ``model.predict(obs, deterministic=True)``.
 """
@@ -23,11 +25,12 @@ import gymnasium as gym
 import numpy as np
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from tqdm.auto import tqdm
 
 from gccp_envs.config import DT, IntersectionConfig
-from sb3_gccp.callbacks import episode_row, write_episodes
+from sb3_gccp.callbacks import episode_row, read_episodes, write_episodes
 from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
 from sb3_gccp.progress import new_bar
@@ -42,6 +45,7 @@ BASELINES = {
 """Baseline name (and zoo file ``<name>.yml``) -> its algorithm class, imported when first used."""
 MODEL_FILE = "model.zip"
 BASELINE_FILE = "baseline.yml"
+REPLAY_BUFFER_FILE = "replay_buffer.pkl"
 
 
 def baseline_algorithm(name: str) -> type[BaseAlgorithm]:
@@ -60,31 +64,72 @@ def max_episode_steps(world: IntersectionConfig) -> int:
 
 
 class EpisodeRecorder(BaseCallback):
-    """One row per finished training episode (the decider's ``episodes.csv`` layout) and a progress bar.
+    """One row per finished training episode (the decider's ``episodes.csv`` layout), a progress bar,
+    a checkpoint at the end of the rollout in which every ``save_every``-th episode ended, and the end
+    of training at the episode budget.
 
-    :param budget: the episode budget (the progress bar's total)
+    :param budget: the episode budget over all workers
     :param description: the progress bar's label
     :param progress_bar: show the bar
+    :param checkpoint_dir: where checkpoints go (None: no checkpoints)
+    :param save_every: episodes between checkpoints
+    :param history: the rows of a resumed run
     """
 
-    def __init__(self, budget: int, description: str = "", progress_bar: bool = False) -> None:
+    def __init__(
+        self,
+        budget: int,
+        description: str = "",
+        progress_bar: bool = False,
+        checkpoint_dir: Path | None = None,
+        save_every: int = 250,
+        history: list[dict[str, Any]] | None = None,
+    ) -> None:
         super().__init__()
         self.budget = budget
         self.description = description
         self.progress_bar = progress_bar
-        self.history: list[dict[str, Any]] = []
+        self.checkpoint_dir = checkpoint_dir
+        self.save_every = save_every
+        self.history: list[dict[str, Any]] = list(history or [])
         self._bar: tqdm | None = None
+        self._checkpoint_due = False
 
     def _on_training_start(self) -> None:
-        self._bar = new_bar(total=self.budget, desc=self.description, unit="ep", enabled=self.progress_bar)
+        self._bar = new_bar(
+            total=self.budget,
+            initial=len(self.history),
+            desc=self.description,
+            unit="ep",
+            enabled=self.progress_bar,
+        )
 
     def _on_step(self) -> bool:
         for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):
-            if done:
+            if done and len(self.history) < self.budget:
                 self.history.append(episode_row(info, len(self.history) + 1, self.num_timesteps, False))
                 if self._bar is not None:
                     self._bar.update()
-        return True
+                self._checkpoint_due |= len(self.history) % self.save_every == 0
+        return len(self.history) < self.budget
+
+    def _on_rollout_end(self) -> None:
+        # Here every transition collected so far is in the replay buffer (in _on_step the last one
+        # is not yet); an on-policy rollout is simply collected again after a resume.
+        if self._checkpoint_due and self.checkpoint_dir is not None:
+            self.save_checkpoint(self.checkpoint_dir)
+        self._checkpoint_due = False
+
+    def save_checkpoint(self, folder: Path) -> None:
+        """The model, its replay buffer (off-policy) and the episode rows, each written then renamed."""
+        folder.mkdir(parents=True, exist_ok=True)
+        self.model.save(folder / "model.tmp.zip")
+        if isinstance(self.model, OffPolicyAlgorithm):
+            self.model.save_replay_buffer(folder / "replay_buffer.tmp.pkl")
+            (folder / "replay_buffer.tmp.pkl").replace(folder / REPLAY_BUFFER_FILE)
+        write_episodes(self.history, folder / "episodes.tmp.csv")
+        (folder / "model.tmp.zip").replace(folder / MODEL_FILE)
+        (folder / "episodes.tmp.csv").replace(folder / "episodes.csv")  # last: marks the set complete
 
     def _on_training_end(self) -> None:
         if self._bar is not None:
@@ -99,15 +144,20 @@ def train_baseline(
     episodes: int,
     progress_bar: bool = False,
     description: str = "",
+    resume: bool = False,
+    save_every_episodes: int = 250,
 ) -> Path:
     """Train a baseline on ``GCCPFlat-v0`` for ``episodes`` episodes over all workers; return the model.
 
     :param name: ``dqn``, ``ppo`` or ``sac_discrete``
     :param config_file: a zoo file with a ``GCCPFlat-v0`` entry
-    :param run_dir: the run folder (created; must not exist)
+    :param run_dir: the run folder (created; must not exist unless resuming)
     :param seed: seed of the algorithm and of the env workers
     :param episodes: the episode budget; ``n_timesteps`` of the entry only caps the run
     :param progress_bar: count episodes on a progress bar labelled ``description``
+    :param resume: continue ``run_dir`` from its last checkpoint (model, replay buffer, episode rows,
+        step count and schedules; the env workers start over from ``seed``)
+    :param save_every_episodes: episodes between checkpoints
     """
     algorithm = baseline_algorithm(name)
     settings = load_hyperparams(config_file, FLAT_ENV_ID)
@@ -115,21 +165,40 @@ def train_baseline(
     world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     n_timesteps, n_envs = int(settings.get("n_timesteps", 1)), int(settings.get("n_envs", 1))
     kwargs = algorithm_kwargs(settings, n_timesteps, "MultiInputPolicy", algorithm)
-    run_dir.mkdir(parents=True, exist_ok=False)
-    (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
+    checkpoints = run_dir / "checkpoints"
+    if resume and not has_checkpoint(run_dir):
+        raise ValueError(f"no checkpoint to resume in {run_dir}")
+    if not resume:
+        run_dir.mkdir(parents=True, exist_ok=False)
+        (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
     env = make_run_env(FLAT_ENV_ID, n_envs, seed, world, run_dir)
-    recorder = EpisodeRecorder(episodes, description, progress_bar)
+    history = read_episodes(checkpoints / "episodes.csv") if resume else []
+    recorder = EpisodeRecorder(episodes, description, progress_bar, checkpoints, save_every_episodes, history)
     try:
-        model = algorithm(env=env, seed=seed, tensorboard_log=str(run_dir / "tb"), **kwargs)
-        # SB3 counts the limit per worker.
-        stop = StopTrainingOnMaxEpisodes(math.ceil(episodes / n_envs))
-        model.learn(n_timesteps, callback=[recorder, stop], tb_log_name=name)
+        if resume:
+            model = algorithm.load(checkpoints / MODEL_FILE, env=env, device="cpu")
+            if isinstance(model, OffPolicyAlgorithm):
+                model.load_replay_buffer(checkpoints / REPLAY_BUFFER_FILE)
+        else:
+            model = algorithm(env=env, seed=seed, tensorboard_log=str(run_dir / "tb"), **kwargs)
+        if len(history) < episodes:
+            model.learn(
+                n_timesteps - model.num_timesteps,
+                callback=recorder,
+                tb_log_name=name,
+                reset_num_timesteps=not resume,
+            )
     finally:
         env.close()
     model.save(run_dir / MODEL_FILE)
     write_baseline_spec(run_dir, name)
     write_episodes(recorder.history, run_dir / "episodes.csv")
     return run_dir / MODEL_FILE
+
+
+def has_checkpoint(run_dir: Path) -> bool:
+    """Whether a baseline run folder holds a complete checkpoint to resume from."""
+    return (run_dir / "checkpoints" / "episodes.csv").is_file()
 
 
 def write_baseline_spec(run_dir: Path, name: str) -> None:

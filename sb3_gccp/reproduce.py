@@ -59,6 +59,7 @@ from sb3_gccp.baselines import (
     BASELINE_FILE,
     FLAT_ENV_ID,
     baseline_algorithm,
+    has_checkpoint,
     load_baseline,
     max_episode_steps,
     train_baseline,
@@ -561,8 +562,11 @@ def _train_hierarchy(plan: Plan, method: Method, seed: int, planner: Path | None
 
 
 def _train_baseline(plan: Plan, method: Method, seed: int, run_dir: Path, label: str) -> None:
-    if run_dir.exists():
-        print(f"{label}: an unfinished run starts over", flush=True)
+    resume = has_checkpoint(run_dir)
+    if resume:
+        print(f"{label}: continuing from the last checkpoint", flush=True)
+    elif run_dir.exists():
+        print(f"{label}: an unfinished run without a checkpoint starts over", flush=True)
         shutil.rmtree(run_dir)
     if plan.request.torch_threads is not None:
         th.set_num_threads(plan.request.torch_threads)
@@ -574,6 +578,7 @@ def _train_baseline(plan: Plan, method: Method, seed: int, run_dir: Path, label:
         plan.preset.episodes,
         progress_bar=plan.request.progress_bar,
         description=label,
+        resume=resume,
     )
 
 

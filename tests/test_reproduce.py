@@ -131,7 +131,7 @@ def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(repr
     assert result.returncode == 0, result.stderr
     assert result.stdout.count("finished before, skipped") == 7
     assert "seed 0 dqn: training for 2 episodes" in result.stdout
-    assert "seed 0 dqn: an unfinished run starts over" in result.stdout
+    assert "seed 0 dqn: an unfinished run without a checkpoint starts over" in result.stdout
     assert (root / "ours" / "decider.zip").stat().st_mtime_ns == ours_model
     assert (root / "dqn" / "training.json").is_file()
 
