@@ -254,7 +254,9 @@ class GCCPCallback(BaseCallback):
         self._recent.append(row)
         if self._bar is not None:
             self._bar.update()
-            self._bar.set_postfix(success=f"{np.mean([e['success'] for e in self._recent]):.2f}")
+            self._bar.set_postfix(
+                success=f"{np.mean([e['success'] for e in self._recent]):.2f}", refresh=False
+            )
         if (
             not self.masks_on
             and self.predictor is not None
