@@ -210,7 +210,6 @@ def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tup
     """A baseline run folder (``baseline.yml``, ``config.yml``, the model) ready to evaluate.
 
     :param overrides: world config keys replacing the run's
-
     :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
     :raises ValueError: with a one-line reason when something is missing
     """

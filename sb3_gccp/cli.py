@@ -58,13 +58,13 @@ def load_world_config(path: str | None, assignments: list[str]) -> IntersectionC
         raise CLIError(str(err)) from err
 
 
-def parse_assignments(assignments: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` strings as a mapping, values read as YAML scalars or lists."""
+def parse_assignments(assignments: list[str], flag: str = "--set") -> dict[str, Any]:
+    """``KEY=VALUE`` strings (of option ``flag``) as a mapping, values read as YAML scalars or lists."""
     values: dict[str, Any] = {}
     for item in assignments:
         key, sep, raw = item.partition("=")
         if not sep or not key:
-            raise CLIError(f"--set expects KEY=VALUE, got {item!r}")
+            raise CLIError(f"{flag} expects KEY=VALUE, got {item!r}")
         values[key.strip()] = yaml.safe_load(raw)
     return values
 
@@ -300,7 +300,7 @@ def _train_predictor(args: argparse.Namespace) -> None:
         progress_bar=not args.no_progress,
         torch_threads=args.torch_threads,
         world=world,
-        predictor_kwargs=parse_assignments(args.predictor_set),
+        predictor_kwargs=parse_assignments(args.predictor_set, "--predictor-set"),
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:
@@ -411,7 +411,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.set_defaults(func=_train)
 
-    evaluate = sub.add_parser("evaluate", help="run a trained hierarchy on seeded traffic flows")
+    evaluate = sub.add_parser(
+        "evaluate", help="run a trained hierarchy (or a flat baseline) on seeded traffic flows"
+    )
     evaluate.add_argument(
         "--model",
         required=True,

@@ -103,6 +103,7 @@ def test_predictor_stage_collects_with_the_scripted_planner(tmp_path):
             "cv_residual must be a boolean",
         ),
         (("--planner", "PLANNER", "--predictor-set", "goal_condition=false"), "the stage trains both"),
+        (("--planner", "PLANNER", "--predictor-set", "cv_residual"), "--predictor-set expects KEY=VALUE"),
     ],
 )
 def test_bad_predictor_stage_input_is_one_line(tmp_path, planner, args, message):
