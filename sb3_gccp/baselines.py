@@ -206,11 +206,9 @@ def write_baseline_spec(run_dir: Path, name: str) -> None:
     (run_dir / BASELINE_FILE).write_text(yaml.safe_dump({"algorithm": name, "model": MODEL_FILE}))
 
 
-def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tuple[gym.Env, Policy, str]:
-    """A baseline run folder (``baseline.yml``, ``config.yml``, the model) ready to evaluate.
+def read_baseline_spec(run_dir: Path) -> tuple[str, Path]:
+    """The algorithm's name and the model file named by a run folder's ``baseline.yml``, both checked.
 
-    :param overrides: world config keys replacing the run's
-    :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
     :raises ValueError: with a one-line reason when something is missing
     """
     spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
@@ -218,6 +216,19 @@ def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tup
     baseline_algorithm(name)
     if not model.is_file():
         raise ValueError(f"{run_dir / BASELINE_FILE} names a missing file: {model}")
+    if not (run_dir / "config.yml").is_file():
+        raise ValueError(f"no config.yml in {run_dir}")
+    return name, model
+
+
+def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tuple[gym.Env, Policy, str]:
+    """A baseline run folder (``baseline.yml``, ``config.yml``, the model) ready to evaluate.
+
+    :param overrides: world config keys replacing the run's
+    :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
+    :raises ValueError: with a one-line reason when something is missing
+    """
+    name, model = read_baseline_spec(run_dir)
     settings = read_yaml_mapping(run_dir / "config.yml", "run config")
     world = IntersectionConfig.from_dict({**(settings.get("env_kwargs") or {}), **(overrides or {})})
     return gym.make(FLAT_ENV_ID, config=world), baseline_policy(name, model), name

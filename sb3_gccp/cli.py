@@ -337,6 +337,17 @@ def _field_docs() -> dict[str, str]:
     return docs
 
 
+def add_world_overrides(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--set KEY=VALUE`` (repeatable): world config keys replacing a trained model's."""
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a world config key (repeatable)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``sb3_gccp``."""
     parser = argparse.ArgumentParser(prog="sb3_gccp", description=__doc__.splitlines()[0])
@@ -344,13 +355,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def world_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--config", help="YAML file of world config keys (see `sb3_gccp config`)")
-        p.add_argument(
-            "--set",
-            action="append",
-            default=[],
-            metavar="KEY=VALUE",
-            help="override one world config key (repeatable)",
-        )
+        add_world_overrides(p)
 
     rollout = sub.add_parser("rollout", help="play seeded episodes with the scripted hierarchy")
     rollout.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
@@ -406,9 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="PredictorConfig field of both learned predictors (repeatable): cv_residual=true",
     )
-    predictor.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="world config key (repeatable)"
-    )
+    add_world_overrides(predictor)
     train.set_defaults(func=_train)
 
     evaluate = sub.add_parser(
@@ -429,9 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="sample subgoals from the decision-maker's policy (seeded by --seed) instead of its argmax",
     )
-    evaluate.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
-    )
+    add_world_overrides(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
     video = sub.add_parser("video", help="write a GIF or MP4 of one episode of a trained hierarchy")
@@ -445,9 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-steps", type=int, help="stop after this many 0.1 s steps (default: the episode)"
     )
     video.add_argument("--fps", type=float, default=10.0, help="frames per second (10: real time)")
-    video.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a world config key"
-    )
+    add_world_overrides(video)
     video.set_defaults(func=_video)
 
     reproduce = sub.add_parser(

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch as th
 import yaml
 
-from sb3_gccp.baselines import BASELINE_FILE, MODEL_FILE, load_baseline
+from sb3_gccp.baselines import BASELINE_FILE, read_baseline_spec
 from sb3_gccp.hierarchy import HIERARCHY_FILE, load_hierarchy
 from sb3_gccp.hyperparams import read_yaml_mapping
 
@@ -88,11 +88,8 @@ def export_run(run_dir: str | Path, out_dir: str | Path) -> list[Path]:
 
 def _baseline_files(run_dir: Path) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a baseline's export, with the rewritten baseline.yml."""
-    load_baseline(run_dir)  # checks the algorithm, the model and the config
-    spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
-    files: dict[str, Path | str] = {"model.zip": run_dir / str(spec.get("model", MODEL_FILE))}
-    files[BASELINE_FILE] = yaml.safe_dump({**spec, "model": "model.zip"}, sort_keys=False)
-    return files
+    name, model = read_baseline_spec(run_dir)
+    return {"model.zip": model, BASELINE_FILE: yaml.safe_dump({"algorithm": name, "model": "model.zip"})}
 
 
 def _hierarchy_files(run_dir: Path) -> dict[str, Path | str]:

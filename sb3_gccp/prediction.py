@@ -106,6 +106,11 @@ def current_poses(obs: Mapping[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
     return pose, state[..., 3]
 
 
+def future_times(horizon: int) -> th.Tensor:
+    """The times [s] of the T_f predicted poses: DT, 2 DT, ..., T_f DT."""
+    return DT * th.arange(1, horizon + 1, dtype=th.float32)
+
+
 def constant_velocity_displacement(speed: th.Tensor, times: th.Tensor) -> th.Tensor:
     """Each vehicle's displacement in its own frame when it keeps its heading and speed.
 
@@ -171,7 +176,7 @@ class TrajectoryPredictor(nn.Module):
         )
         scale = th.tensor([config.encoder_config.distance_scale] * 2 + [1.0])
         self.register_buffer("output_scale", scale, persistent=False)
-        self.register_buffer("times", DT * th.arange(1, self.horizon + 1, dtype=th.float32), persistent=False)
+        self.register_buffer("times", future_times(self.horizon), persistent=False)
 
     def forward(self, obs: Mapping[str, th.Tensor], goals: th.Tensor) -> th.Tensor:
         """Predict the future of every vehicle under each of G subgoals.
@@ -206,7 +211,7 @@ class ConstantVelocityPredictor(nn.Module):
     def __init__(self, horizon: int | None = None) -> None:
         super().__init__()
         self.horizon = horizon or IntersectionConfig().prediction_horizon
-        self.register_buffer("times", DT * th.arange(1, self.horizon + 1, dtype=th.float32), persistent=False)
+        self.register_buffer("times", future_times(self.horizon), persistent=False)
 
     def forward(self, obs: Mapping[str, th.Tensor], goals: th.Tensor) -> th.Tensor:
         """Extrapolate every vehicle's current pose along its heading at its speed; goals are ignored.
