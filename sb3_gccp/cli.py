@@ -92,7 +92,7 @@ def _rollout(args: argparse.Namespace) -> None:
         raise CLIError("--episodes-per-task must be at least 1")
     env = GCCPDeciderEnv(config)
     decider = FarthestSubgoalDecider()
-    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed)
+    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=not args.no_progress)
     table = summarize(results)
     print(f"scripted hierarchy, {args.episodes_per_task} episodes per task from seed {args.seed}")
     print(format_table(table))
@@ -180,7 +180,7 @@ def _evaluate(args: argparse.Namespace) -> None:
         import torch as th
 
         th.manual_seed(args.seed)
-    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed)
+    results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=not args.no_progress)
     table = summarize(results)
     print(
         f"{what}, {args.episodes_per_task} episodes per task from seed {args.seed}"
@@ -432,6 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="sample subgoals from the decision-maker's policy (seeded by --seed) instead of its argmax",
     )
+    evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_world_overrides(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
