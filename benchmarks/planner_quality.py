@@ -10,7 +10,12 @@
 3. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
    on roads without traffic: the share of episodes that complete their task.
 
+With ``--oracle``, part 1 also prints ``oracle_reach``: the share of the drawn subgoals that some
+forward path within the ego's turn radius and driving range reaches (Dubins paths; road edge and
+traffic ignored), an upper bound on any planner's subgoal reach over the same draws.
+
 Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
+[--oracle]
 Last line: ``task_completion_empty_road <rate>`` (goals: completion >= 0.98, reach >= 0.95,
 off-road <= 0.01).
 """
@@ -18,12 +23,15 @@ off-road <= 0.01).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 from tqdm import tqdm
 
 import sb3_gccp  # noqa: F401  (registers the environments)
-from gccp_envs.config import TASKS
+from gccp_envs.action import EgoState
+from gccp_envs.config import DT, TASKS, IntersectionConfig
+from gccp_envs.geometry import dubins_length
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
@@ -34,28 +42,70 @@ LANE_CHANGE_OFFSET = 3.0
 """A subgoal at least this far [m] to the side of the ego when drawn needs a lane change."""
 LANE_CHANGE_LENGTH = 9.0
 """Lane-change subgoals drawn less than this far ahead [m] are counted apart: a 4 m shift back to the
-lane's heading with the quickest turn (radius 6 m, two opposite arcs of 48 degrees) takes about 9 m, so
-these are at best marginally reachable within the 2 m / 0.5 rad tolerance."""
+lane's heading with the quickest turn (radius 6 m, two opposite arcs of 48 degrees) takes about 9 m."""
+TARGET_SPACING = 0.1
+"""Spacing [m] of the positions ``reach_bound`` samples within a subgoal's reach radius."""
+TARGET_TURN_SPACING = 0.01
+"""Spacing [rad] of the headings ``reach_bound`` samples within a subgoal's heading tolerance."""
 
 
-def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps: int) -> dict[str, float]:
-    """Reach and off-road rates with uniformly drawn subgoals, over all tasks, and how many of the
-    drawn subgoals were lane changes too short to drive (see ``LANE_CHANGE_LENGTH``)."""
+def longest_drive(config: IntersectionConfig, speed: float, steps: int) -> float:
+    """Farthest [m] the ego can drive in ``steps`` steps from ``speed`` (accelerating to cruise speed)."""
+    total = 0.0
+    for _ in range(steps):
+        new_speed = max(speed, min(speed + config.acceleration * DT, config.cruise_speed))
+        total += 0.5 * (speed + new_speed) * DT
+        speed = new_speed
+    return total
+
+
+def reach_bound(config: IntersectionConfig, start: EgoState, goal: np.ndarray, steps: int) -> bool:
+    """Whether the subgoal ``goal`` could be reached within ``steps`` steps from ``start`` by any forward
+    path no tighter than the quickest turn and no longer than the ego can drive: a relaxation of the six
+    actions (which drive exactly such paths) that ignores the road edge and the traffic, so no planner
+    reaches a subgoal this rejects. Samples the poses within the reach radius and heading tolerance."""
+    r, h = config.subgoal_reach_radius, config.subgoal_reach_heading
+    offsets = np.arange(-r, r + 1e-9, TARGET_SPACING)
+    ox, oy = np.meshgrid(offsets, offsets)
+    inside = np.hypot(ox, oy) <= r
+    turns = np.arange(-h, h + 1e-9, TARGET_TURN_SPACING)
+    ends = np.stack(
+        [
+            np.repeat(goal[0] + ox[inside], len(turns)),
+            np.repeat(goal[1] + oy[inside], len(turns)),
+            np.tile(goal[2] + turns, int(inside.sum())),
+        ],
+        axis=-1,
+    )
+    start_pose = np.array([start.x, start.y, start.heading])
+    shortest = dubins_length(start_pose, ends, 1.0 / config.quick_turn_curvature).min()
+    return bool(shortest <= longest_drive(config, start.speed, steps))
+
+
+def subgoal_reaching(
+    planner: FrozenPolicy, episodes: int, seed: int, hold_steps: int, oracle: bool = False
+) -> dict[str, float]:
+    """Reach and off-road rates with uniformly drawn subgoals, over all tasks, how many of the drawn
+    subgoals were short lane changes (see ``LANE_CHANGE_LENGTH``) and, with ``oracle``, how many
+    no planner can miss for want of a path (see ``reach_bound``)."""
     env = GCCPPlannerEnv(
         decision_period=hold_steps, prediction_horizon=min(10, hold_steps), hold_probability=0.0
     )
-    reached = counted = offroad = total = short = short_reached = 0
+    reached = counted = offroad = total = short = short_reached = feasible = short_feasible = 0
 
-    def count(goal: np.ndarray, hit: bool) -> None:
-        nonlocal reached, counted, short, short_reached
+    def count(goal: np.ndarray, hit: bool, start: EgoState, world_goal: np.ndarray) -> None:
+        nonlocal reached, counted, short, short_reached, feasible, short_feasible
         reached, counted = reached + hit, counted + 1
+        can = oracle and (hit or reach_bound(env.config, start, world_goal, hold_steps))
+        feasible += can
         if abs(goal[1]) >= LANE_CHANGE_OFFSET and goal[0] < LANE_CHANGE_LENGTH:
-            short, short_reached = short + 1, short_reached + hit
+            short, short_reached, short_feasible = short + 1, short_reached + hit, short_feasible + can
 
     for task in TASKS:
         for k in tqdm(range(episodes), desc=f"subgoals {task}", leave=False):
             obs, _ = env.reset(seed=seed + k, options={"task": task})
             goal, hit, steps_held = obs["goal"].copy(), False, 0
+            start, world_goal = replace(env.world.ego), env.subgoal.copy()
             while True:
                 obs, _, terminated, truncated, info = env.step(planner(obs, env.action_masks()))
                 hit |= info["goal_reached"]
@@ -63,19 +113,22 @@ def subgoal_reaching(planner: FrozenPolicy, episodes: int, seed: int, hold_steps
                 if terminated or truncated:
                     # A hold cut short by a collision or the time limit says nothing about the planner.
                     if hit or not (info["crashed"] or info["timeout"]):
-                        count(goal, hit)
+                        count(goal, hit, start, world_goal)
                     offroad += info["offroad"]
                     total += 1
                     break
                 if steps_held == hold_steps:
-                    count(goal, hit)
+                    count(goal, hit, start, world_goal)
                     goal, hit, steps_held = obs["goal"].copy(), False, 0
+                    start, world_goal = replace(env.world.ego), env.subgoal.copy()
     return {
         "subgoal_reach": reached / max(counted, 1),
         "subgoals": counted,
         "offroad": offroad / total,
         "short_lane_changes": short,
         "short_lane_changes_reached": short_reached,
+        "oracle_reach": feasible / max(counted, 1),
+        "short_lane_changes_feasible": short_feasible,
     }
 
 
@@ -101,9 +154,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=100, help="episodes per task in each part")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--hold-steps", type=int, default=30, help="steps each drawn subgoal is held")
+    parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also search every drawn subgoal's action sequences: the reach no planner can beat",
+    )
     args = parser.parse_args()
     planner = FrozenPolicy(args.model)
-    reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps)
+    reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
@@ -117,6 +175,12 @@ def main() -> None:
         f"  of them {reaching['short_lane_changes']} lane changes (>= {LANE_CHANGE_OFFSET:.0f} m to the "
         f"side) less than {LANE_CHANGE_LENGTH:.0f} m ahead: {reaching['short_lane_changes_reached']} reached"
     )
+    if args.oracle:
+        print(
+            f"oracle_reach {reaching['oracle_reach']:.3f} (some action sequence reaches the subgoal in "
+            f"{args.hold_steps} steps, road edge and traffic ignored); short lane changes: "
+            f"{reaching['short_lane_changes_feasible']} of {reaching['short_lane_changes']}"
+        )
     print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
     print(f"stop_rate {stop_rate:.3f} (hold subgoals only for 4 s, empty road)")
     for task in TASKS:

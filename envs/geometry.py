@@ -26,6 +26,62 @@ def wrap_angle(angle: FloatArray | float) -> FloatArray:
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def _mod2pi(angle: FloatArray) -> FloatArray:
+    """Angle in [0, 2 pi), with round-off just below 2 pi taken as 0 (no spurious full circles)."""
+    wrapped = np.mod(angle, 2.0 * np.pi)
+    return np.where(wrapped > 2.0 * np.pi - 1e-6, 0.0, wrapped)
+
+
+def _root(square: FloatArray) -> FloatArray:
+    """Square root, NaN (no such word) for negative squares beyond round-off."""
+    return np.sqrt(np.where(square > -1e-9, np.maximum(square, 0.0), np.nan))
+
+
+def _arccos(cosine: FloatArray) -> FloatArray:
+    """Arc cosine, NaN (no such word) outside [-1, 1] beyond round-off."""
+    return np.arccos(np.where(np.abs(cosine) < 1 + 1e-9, np.clip(cosine, -1.0, 1.0), np.nan))
+
+
+def dubins_length(start: FloatArray, ends: FloatArray, radius: float) -> FloatArray:
+    """Length of the shortest forward path with turn radius at least ``radius`` from one pose to others.
+
+    The minimum over Dubins' six words (Shkel and Lumelsky 2001, "Classification of the Dubins set"),
+    vectorised over the end poses. Mirror-symmetric, so it holds in either handedness of frame.
+
+    :param start: (3,) start pose (x, y, heading)
+    :param ends: (K, 3) end poses
+    :param radius: the smallest turn radius [m]
+    :return: (K,) lengths [m]
+    """
+    dx, dy = ends[:, 0] - start[0], ends[:, 1] - start[1]
+    d = np.hypot(dx, dy) / radius
+    theta = _mod2pi(np.arctan2(dy, dx))
+    alpha, beta = _mod2pi(start[2] - theta), _mod2pi(ends[:, 2] - theta)
+    sa, sb, ca, cb = np.sin(alpha), np.sin(beta), np.cos(alpha), np.cos(beta)
+    c_ab = np.cos(alpha - beta)
+    words = []
+    with np.errstate(invalid="ignore"):
+        p_sq = 2 + d * d - 2 * c_ab + 2 * d * (sa - sb)  # LSL
+        phi = np.arctan2(cb - ca, d + sa - sb)
+        words.append(_mod2pi(phi - alpha) + _root(p_sq) + _mod2pi(beta - phi))
+        p_sq = 2 + d * d - 2 * c_ab + 2 * d * (sb - sa)  # RSR
+        phi = np.arctan2(ca - cb, d - sa + sb)
+        words.append(_mod2pi(alpha - phi) + _root(p_sq) + _mod2pi(phi - beta))
+        p = _root(-2 + d * d + 2 * c_ab + 2 * d * (sa + sb))  # LSR
+        phi = np.arctan2(-ca - cb, d + sa + sb) - np.arctan2(-2.0, p)
+        words.append(_mod2pi(phi - alpha) + p + _mod2pi(phi - beta))
+        p = _root(-2 + d * d + 2 * c_ab - 2 * d * (sa + sb))  # RSL
+        phi = np.arctan2(ca + cb, d - sa - sb) - np.arctan2(2.0, p)
+        words.append(_mod2pi(alpha - phi) + p + _mod2pi(beta - phi))
+        p = _mod2pi(2 * np.pi - _arccos((6 - d * d + 2 * c_ab + 2 * d * (sa - sb)) / 8))  # RLR
+        t = _mod2pi(alpha - np.arctan2(ca - cb, d - sa + sb) + p / 2)
+        words.append(t + p + _mod2pi(alpha - beta - t + p))
+        p = _mod2pi(2 * np.pi - _arccos((6 - d * d + 2 * c_ab + 2 * d * (sb - sa)) / 8))  # LRL
+        t = _mod2pi(-alpha - np.arctan2(ca - cb, d + sa - sb) + p / 2)
+        words.append(t + p + _mod2pi(beta - alpha - t + p))
+    return np.nanmin(np.stack(words), axis=0) * radius
+
+
 def to_frame(points: FloatArray, origin: FloatArray, heading: float) -> FloatArray:
     """Express world points (..., 2) in the frame at ``origin`` rotated by ``heading``.
 

@@ -68,6 +68,12 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         self._subgoal = candidates[index].copy()
         self._arrived = False
 
+    @property
+    def subgoal(self) -> np.ndarray:
+        """The current subgoal, a world pose (x, y, heading)."""
+        assert self._subgoal is not None, "reset the env first"
+        return self._subgoal
+
     def _observe(self) -> Obs:
         assert self._subgoal is not None
         return {**self._state(), "goal": self._in_ego_frame(self._subgoal)}

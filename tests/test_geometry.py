@@ -9,11 +9,14 @@ from helpers import ego_frame
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
+from gccp_envs.action import EgoMotion, EgoState
+from gccp_envs.config import DT, IntersectionConfig
 from gccp_envs.geometry import (
     PathSet,
     Segment,
     box_corners,
     boxes_overlap,
+    dubins_length,
     from_frame,
     poses_to_frame,
     to_frame,
@@ -265,3 +268,49 @@ def test_lookup_is_inf_off_the_band(layout):
     assert np.isinf(d[1])  # 38 m from the lane
     _, d = layout.paths.lookup(np.array(1), np.array([500.0, 0.0]))
     assert np.isinf(d)  # outside the table
+
+
+def test_dubins_length_examples():
+    radius = 6.0
+    ends = np.array([[10.0, 0.0, 0.0], [6.0, 6.0, np.pi / 2], [6.0, -6.0, -np.pi / 2], [0.0, 12.0, np.pi]])
+    lengths = dubins_length(np.zeros(3), ends, radius)
+    np.testing.assert_allclose(lengths, [10.0, np.pi * 3.0, np.pi * 3.0, np.pi * 6.0], atol=1e-6)
+
+
+@given(
+    st.floats(-np.pi, np.pi),
+    st.floats(0.0, 8.0),
+    st.lists(st.tuples(st.integers(0, 5), st.integers(1, 15)), min_size=1, max_size=6),
+)
+def test_dubins_length_never_exceeds_a_driven_path(heading, speed, segments):
+    """Every path the ego's six actions drive is a forward path with turn radius >= 6 m, so Dubins'
+    shortest is no longer than it (and no shorter than the straight line)."""
+    config = IntersectionConfig()
+    motion = EgoMotion(config)
+    state = EgoState(0.0, 0.0, heading, speed)
+    driven = 0.0
+    for action, steps in segments:
+        for _ in range(steps):
+            before = state.speed
+            state = motion.step(state, action)
+            driven += 0.5 * (before + state.speed) * DT
+    start, end = np.array([0.0, 0.0, heading]), np.array([[state.x, state.y, state.heading]])
+    shortest = dubins_length(start, end, 1.0 / config.quick_turn_curvature)[0]
+    assert np.hypot(state.x, state.y) - 1e-6 <= shortest <= driven + 1e-6
+
+
+@pytest.mark.parametrize("action", [4, 5])
+@pytest.mark.parametrize("heading", [-2.9, -1.65, 0.0, 0.42, 2.87])
+@pytest.mark.parametrize("steps", [1, 2, 7, 20])
+def test_dubins_length_of_a_quickest_turn_arc_is_the_arc(action, heading, steps):
+    """An arc of the quickest turn shorter than half a circle is its own shortest path: the degenerate
+    words (straight part and last turn of length zero) must not come out a full circle longer."""
+    config = IntersectionConfig()
+    motion = EgoMotion(config)
+    state = EgoState(0.0, 0.0, heading, 5.0)
+    for _ in range(steps):
+        state = motion.step(state, action)
+    shortest = dubins_length(
+        np.array([0.0, 0.0, heading]), np.array([[state.x, state.y, state.heading]]), 6.0
+    )
+    assert shortest[0] == pytest.approx(5.0 * DT * steps, abs=1e-6)
