@@ -174,6 +174,9 @@ class TrajectoryPredictor(nn.Module):
             nn.ReLU(),
             nn.Linear(config.decoder_hidden, self.horizon * 3),
         )
+        if config.cv_residual:  # start from no correction: an untrained predictor is constant velocity
+            nn.init.zeros_(self.decoder[-1].weight)
+            nn.init.zeros_(self.decoder[-1].bias)
         scale = th.tensor([config.encoder_config.distance_scale] * 2 + [1.0])
         self.register_buffer("output_scale", scale, persistent=False)
         self.register_buffer("times", future_times(self.horizon), persistent=False)

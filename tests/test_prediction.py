@@ -162,13 +162,10 @@ def test_constant_velocity_predictor_extrapolates_straight_lines():
             np.testing.assert_allclose(out[0, g, i].numpy(), poses, atol=1e-5)
 
 
-def test_residual_decoder_corrects_constant_velocity():
-    predictor = tiny_predictor(cv_residual=True)
+def test_residual_decoder_starts_at_constant_velocity_and_corrects_it():
+    predictor = tiny_predictor(cv_residual=True)  # untrained: no correction yet
     last = predictor.decoder[-1]
     assert isinstance(last, nn.Linear)
-    with th.no_grad():
-        last.weight.zero_()
-        last.bias.zero_()
     obs = batch(scene([(0.0, 0.0, 0.0, 8.0), (10.0, 5.0, np.pi / 2, 5.0), (-3.0, 2.0, 3 * np.pi / 4, 2.0)]))
     cv = ConstantVelocityPredictor()(obs, obs["subgoals"])
     present = obs["history_mask"][0].any(-1)
