@@ -145,8 +145,9 @@ class Preset:
     100,000, as ``pretrained/planner.zip``)."""
     episodes: int
     """N_e: training episodes of every method, baselines included (paper: 2000, "same episode budget")."""
-    mask_after_episodes: int
-    """N_m: episodes before the GCCP masks are switched on (paper: 800)."""
+    mask_after_episodes: int | None
+    """N_m: episodes before the GCCP masks are switched on; None: the decider entry's own
+    (``zoo_configs/ppo_mask.yml``: 0, masks from the first episode; the paper: 800)."""
     episodes_per_task: int
     """Evaluation episodes (seeded traffic flows) per task and method (paper: 50)."""
     heldout_episodes: int
@@ -164,7 +165,8 @@ class Preset:
     def __post_init__(self) -> None:
         for name in ("planner_timesteps", "episodes", "episodes_per_task", "heldout_episodes"):
             _check_int(name, getattr(self, name), 1)
-        _check_int("mask_after_episodes", self.mask_after_episodes, 0)
+        if self.mask_after_episodes is not None:
+            _check_int("mask_after_episodes", self.mask_after_episodes, 0)
         if self.n_envs is not None:
             _check_int("n_envs", self.n_envs, 1)
         for name in ("encoder", "world", "hyperparams"):
@@ -259,7 +261,7 @@ PRESETS = {
     "paper": Preset(
         planner_timesteps=100_000,
         episodes=2000,
-        mask_after_episodes=800,
+        mask_after_episodes=None,
         episodes_per_task=50,
         heldout_episodes=50,
     ),
@@ -284,8 +286,9 @@ def method_settings(method: Method, preset: Preset) -> dict[str, Any]:
             **(entry.get("gccp") or {}),
             "predictor": method.predictor,
             "n_episodes": preset.episodes,
-            "mask_after_episodes": preset.mask_after_episodes,
         }
+        if preset.mask_after_episodes is not None:
+            entry["gccp"]["mask_after_episodes"] = preset.mask_after_episodes
         return _customised(
             entry,
             preset,
@@ -301,6 +304,11 @@ def method_settings(method: Method, preset: Preset) -> dict[str, Any]:
     world = IntersectionConfig.from_dict(entry.get("env_kwargs") or {})
     entry["n_timesteps"] = preset.episodes * max_episode_steps(world)
     return entry
+
+
+def mask_after_episodes(preset: Preset) -> int:
+    """N_m of the preset's hierarchy variants: the preset's, or else the decider entry's."""
+    return gccp_settings(method_settings(METHODS["ours"], preset)).mask_after_episodes
 
 
 def _shipped_entry(file: str, env_id: str) -> dict[str, Any]:
@@ -692,7 +700,7 @@ def reproduce(plan: Plan) -> dict[str, Any]:
         "episodes_per_task": plan.preset.episodes_per_task,
         "budget": {
             "episodes_per_method": plan.preset.episodes,
-            "mask_after_episodes": plan.preset.mask_after_episodes,
+            "mask_after_episodes": mask_after_episodes(plan.preset),
             "planner_pretraining": {str(s): p for s, p in planners.items()},
         },
         "methods": {
@@ -800,7 +808,7 @@ def write_outputs(
                 {n: curves[n] for n in present},
                 out / f"{stem}.png",
                 title,
-                plan.preset.mask_after_episodes if hierarchy else None,
+                mask_after_episodes(plan.preset) if hierarchy else None,
             )
     if errors:
         plot_predictor_errors([e["errors"] for e in errors.values()], out / "fig7_predictor_errors.png")

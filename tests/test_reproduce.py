@@ -22,6 +22,7 @@ from sb3_gccp.reproduce import (
     TABLE_2,
     aggregate,
     format_results_table,
+    mask_after_episodes,
     method_settings,
     planner_settings,
 )
@@ -230,8 +231,9 @@ def test_paper_preset_configs_change_only_the_budget_and_the_gccp_variant():
             **decider["gccp"],
             "predictor": METHODS[name].predictor,
             "n_episodes": 2000,
-            "mask_after_episodes": 800,
         }
+    assert mask_after_episodes(paper) == decider["gccp"]["mask_after_episodes"]
+    assert mask_after_episodes(paper.with_overrides({"mask_after_episodes": 800})) == 800
     for name in ("dqn", "ppo", "sac_discrete"):
         entry = method_settings(METHODS[name], paper)
         shipped = load_hyperparams(default_config_file(f"{name}.yml"), "GCCPFlat-v0")
