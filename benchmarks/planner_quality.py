@@ -15,7 +15,7 @@ forward path within the ego's turn radius and driving range reaches (Dubins path
 traffic ignored), an upper bound on any planner's subgoal reach over the same draws.
 
 Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
-[--oracle]
+[--oracle]; ``--model scripted`` measures the scripted pure-pursuit planner, the reference.
 Last line: ``task_completion_empty_road <rate>`` (goals: completion >= 0.98, reach >= 0.95,
 off-road <= 0.01).
 """
@@ -32,9 +32,9 @@ import sb3_gccp  # noqa: F401  (registers the environments)
 from gccp_envs.action import EgoState
 from gccp_envs.config import DT, TASKS, IntersectionConfig
 from gccp_envs.geometry import dubins_length
-from gccp_envs.option_env import GCCPDeciderEnv
+from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
-from gccp_envs.scripted import FarthestSubgoalDecider
+from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import FrozenPolicy
 
@@ -83,7 +83,7 @@ def reach_bound(config: IntersectionConfig, start: EgoState, goal: np.ndarray, s
 
 
 def subgoal_reaching(
-    planner: FrozenPolicy, episodes: int, seed: int, hold_steps: int, oracle: bool = False
+    planner: Planner, episodes: int, seed: int, hold_steps: int, oracle: bool = False
 ) -> dict[str, float]:
     """Reach and off-road rates with uniformly drawn subgoals, over all tasks, how many of the drawn
     subgoals were short lane changes (see ``LANE_CHANGE_LENGTH``) and, with ``oracle``, how many
@@ -132,7 +132,7 @@ def subgoal_reaching(
     }
 
 
-def stopping(planner: FrozenPolicy, episodes: int, seed: int, steps: int = 40) -> float:
+def stopping(planner: Planner, episodes: int, seed: int, steps: int = 40) -> float:
     """Share of empty-road episodes in which the planner, given only hold subgoals, stands still on the
     road after ``steps`` steps."""
     env = GCCPPlannerEnv(spawn_probability=0.0, hold_probability=1.0, hold_continue=1.0)
@@ -150,7 +150,7 @@ def stopping(planner: FrozenPolicy, episodes: int, seed: int, steps: int = 40) -
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", required=True, help="the planner's SB3 .zip")
+    parser.add_argument("--model", required=True, help="the planner's SB3 .zip, or 'scripted'")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per task in each part")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--hold-steps", type=int, default=30, help="steps each drawn subgoal is held")
@@ -160,7 +160,9 @@ def main() -> None:
         help="also search every drawn subgoal's action sequences: the reach no planner can beat",
     )
     args = parser.parse_args()
-    planner = FrozenPolicy(args.model)
+    planner: Planner = (
+        ScriptedPlanner(IntersectionConfig()) if args.model == "scripted" else FrozenPolicy(args.model)
+    )
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
