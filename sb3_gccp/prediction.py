@@ -169,14 +169,12 @@ class TrajectoryPredictor(nn.Module):
         self.horizon = horizon or world.prediction_horizon
         self.bev_shape = bev_shape or (1, world.bev_size, world.bev_size)
         self.encoder = SceneEncoder(config.encoder_config, bev_shape=self.bev_shape)
-        self.decoder = nn.Sequential(
-            nn.Linear(self.encoder.vehicle_feature_size, config.decoder_hidden),
-            nn.ReLU(),
-            nn.Linear(config.decoder_hidden, self.horizon * 3),
-        )
+        hidden = nn.Linear(self.encoder.vehicle_feature_size, config.decoder_hidden)
+        output = nn.Linear(config.decoder_hidden, self.horizon * 3)
         if config.cv_residual:  # start from no correction: an untrained predictor is constant velocity
-            nn.init.zeros_(self.decoder[-1].weight)
-            nn.init.zeros_(self.decoder[-1].bias)
+            nn.init.zeros_(output.weight)
+            nn.init.zeros_(output.bias)
+        self.decoder = nn.Sequential(hidden, nn.ReLU(), output)
         scale = th.tensor([config.encoder_config.distance_scale] * 2 + [1.0])
         self.register_buffer("output_scale", scale, persistent=False)
         self.register_buffer("times", future_times(self.horizon), persistent=False)
