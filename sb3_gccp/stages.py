@@ -14,6 +14,7 @@ Run folder layout (rl-zoo's, plus our checkpoints)::
 
 from __future__ import annotations
 
+import json
 import math
 import shlex
 import sys
@@ -40,6 +41,7 @@ from sb3_gccp.hyperparams import (
     resolve_policy_kwargs,
     resolve_schedule,
 )
+from sb3_gccp.imitation import ImitationSettings, clone, collect_expert
 from sb3_gccp.progress import StepBar
 
 PLANNER_ENV_ID = "GCCPPlanner-v0"
@@ -84,20 +86,29 @@ def latest_run(stage_dir: Path) -> Path | None:
 def train_planner(request: StageRequest) -> Path:
     """Train the motion-planner with MaskablePPO on ``GCCPPlanner-v0``; return the model path.
 
-    With ``request.resume`` (a run folder), training continues from its last checkpoint with the
-    run's own resolved config, up to the same total budget.
+    With an ``imitation`` map in the entry, the policy first clones the scripted planner
+    (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well) and PPO continues from there for
+    ``n_timesteps`` (0: cloning only). With ``request.resume`` (a run folder), training continues from
+    its last checkpoint with the run's own resolved config, up to the same total budget.
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
     run_dir, settings, seed = open_run(request, PLANNER_ENV_ID, "planner")
-    world, n_timesteps, n_envs = run_budget(settings)
+    imitation = imitation_settings(settings)
+    world, n_timesteps, n_envs = run_budget(settings, (IMITATION_KEY,), allow_zero=imitation is not None)
     if request.resume is None:
         write_run_files(run_dir, settings, request)
     env = make_run_env(PLANNER_ENV_ID, n_envs, seed, world, run_dir)
     checkpoint = latest_checkpoint(run_dir) if request.resume is not None else None
+    ppo_settings = {k: v for k, v in settings.items() if k != IMITATION_KEY}
     model = make_model(
-        env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(settings, n_timesteps)
+        env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(ppo_settings, n_timesteps)
     )
+    if imitation is not None and checkpoint is None:
+        data = collect_expert(world, imitation.expert_steps, seed, request.progress_bar)
+        history = clone(model, data, imitation, seed, request.progress_bar)
+        record = {"settings": imitation.to_dict(), "expert_episodes": data.episodes, "epochs": history}
+        (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")
     callbacks: list[BaseCallback] = [
         CheckpointCallback(
             max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
@@ -124,6 +135,20 @@ def train_planner(request: StageRequest) -> Path:
     return path
 
 
+IMITATION_KEY = "imitation"
+"""The planner entry's own key: behaviour cloning of the scripted planner before PPO."""
+
+
+def imitation_settings(settings: dict[str, Any]) -> ImitationSettings | None:
+    """The planner entry's ``imitation`` map, validated; None without one."""
+    if IMITATION_KEY not in settings:
+        return None
+    try:
+        return ImitationSettings.from_dict(settings[IMITATION_KEY])
+    except (ValueError, TypeError) as err:
+        raise HyperparamsError(str(err)) from err
+
+
 def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict[str, Any], int]:
     """The run folder, settings and seed of a stage: a new run from the zoo file's ``env_id`` entry, or
     with ``request.resume`` the run's own resolved config and seed. Nothing is written yet."""
@@ -142,16 +167,17 @@ def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict
 
 
 def run_budget(
-    settings: dict[str, Any], own_keys: tuple[str, ...] = ()
+    settings: dict[str, Any], own_keys: tuple[str, ...] = (), allow_zero: bool = False
 ) -> tuple[IntersectionConfig, int, int]:
     """Check the settings' keys (besides ``own_keys``) against MaskablePPO; the world config,
-    ``n_timesteps`` and ``n_envs``."""
+    ``n_timesteps`` (0 allowed with ``allow_zero``) and ``n_envs``."""
     check_keys({k: v for k, v in settings.items() if k not in own_keys}, MaskablePPO)
     world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     n_timesteps = int(settings.get("n_timesteps", 100_000))
     n_envs = int(settings.get("n_envs", 1))
-    if n_timesteps < 1 or n_envs < 1:
-        raise HyperparamsError("n_timesteps and n_envs must be positive")
+    if n_timesteps < (0 if allow_zero else 1) or n_envs < 1:
+        what = "non-negative" if allow_zero else "positive"
+        raise HyperparamsError(f"n_timesteps must be {what} and n_envs positive")
     return world, n_timesteps, n_envs
 
 

@@ -26,6 +26,7 @@ from stable_baselines3.common.policies import BasePolicy
 import sb3_gccp  # noqa: F401  (registers the environments)
 from sb3_gccp.hyperparams import (
     POLICY_ALIASES,
+    HyperparamsError,
     gradient_steps_per_timestep,
     resolve_class,
     resolve_policy_kwargs,
@@ -67,6 +68,10 @@ def preprocess_hyperparams(
     from rl_zoo3.utils import ALGOS
 
     hyperparams = dict(hyperparams)
+    if "imitation" in hyperparams:
+        raise HyperparamsError(
+            "imitation: cloning the scripted planner runs in `sb3_gccp train --stage planner` only"
+        )
     schedules = [key for key in ("learning_rate", "clip_range") if isinstance(hyperparams.get(key), dict)]
     if schedules:
         per_timestep = gradient_steps_per_timestep(ALGOS[manager.algo], hyperparams)
