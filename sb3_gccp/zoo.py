@@ -15,6 +15,7 @@ evaluates MaskablePPO with sb3-contrib's masked evaluation, teaches rl-zoo our
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -117,7 +118,11 @@ def main() -> None:
     install()
     from rl_zoo3.train import train
 
-    train()
+    try:
+        train()
+    except HyperparamsError as err:  # our own checks of the zoo file: one line, not a traceback
+        print(f"sb3_gccp.zoo: error: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

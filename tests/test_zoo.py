@@ -54,3 +54,16 @@ def test_zoo_launcher_trains_with_masked_evaluation(tmp_path):
         timeout=120,
     )
     assert check.stdout.split() == ["32", "0.0001", "1e-05"], check.stderr[-2000:]
+
+
+def test_zoo_launcher_refuses_the_imitation_key(tmp_path):
+    entry = {**TINY["GCCPPlanner-v0"], "imitation": {"expert_steps": 10}}
+    (tmp_path / "imitation.yml").write_text(yaml.safe_dump({"GCCPPlanner-v0": entry}))
+    args = ["--algo", "ppo_mask", "--env", "GCCPPlanner-v0", "--conf-file", "imitation.yml", "-f", "logs"]
+    result = run_zoo(tmp_path, *args)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == (
+        "sb3_gccp.zoo: error: imitation: cloning the scripted planner runs in "
+        "`sb3_gccp train --stage planner` only"
+    )
+    assert not list((tmp_path / "logs").rglob("*.zip"))
