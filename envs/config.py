@@ -41,6 +41,22 @@ def reject_unknown_keys(values: Mapping[str, Any], config_class: type, what: str
         raise ValueError(f"unknown {what} key(s): {', '.join(hints)}")
 
 
+def require_int(name: str, value: Any, minimum: int = 1) -> None:
+    """Raise ``ValueError`` unless ``value`` is an integer (not a bool) of at least ``minimum`` (0 or 1).
+
+    :param name: the key as the user wrote it, for the message ("gccp.n_episodes")
+    """
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        kind = "a positive" if minimum >= 1 else "a non-negative"
+        raise ValueError(f"{name} must be {kind} integer, got {value!r}")
+
+
+def require_positive(name: str, value: Any) -> None:
+    """Raise ``ValueError`` unless ``value`` is a number (not a bool) above zero."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+
+
 @dataclass(frozen=True)
 class IntersectionConfig:
     """Configuration of the intersection world shared by the planner, decider and flat envs.
@@ -228,9 +244,7 @@ def _validate(config: IntersectionConfig) -> None:
         "mask_lookahead",
     )
     for name in positive_ints:
-        value = getattr(config, name)
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        require_int(name, getattr(config, name))
     positive_floats = (
         "lane_width",
         "corner_radius",
@@ -252,9 +266,7 @@ def _validate(config: IntersectionConfig) -> None:
         "hold_stop_speed",
     )
     for name in positive_floats:
-        value = getattr(config, name)
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
+        require_positive(name, getattr(config, name))
     for name in ("spawn_probability", "hold_probability", "hold_continue"):
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:

@@ -34,7 +34,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 from tqdm.auto import tqdm
 
-from gccp_envs.config import reject_unknown_keys
+from gccp_envs.config import reject_unknown_keys, require_int, require_positive
 from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.prediction import (
     ConstantVelocityPredictor,
@@ -91,25 +91,18 @@ class GCCPSettings:
         if self.predictor not in PREDICTORS:
             raise ValueError(f"gccp.predictor must be one of {', '.join(PREDICTORS)}, got {self.predictor!r}")
         for name in ("n_episodes", "predictor_batch_size", "buffer_capacity", "save_every_episodes"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"gccp.{name} must be a positive integer, got {value!r}")
+            require_int(f"gccp.{name}", getattr(self, name))
         if not isinstance(self.mask_margin, (int, float)) or self.mask_margin < 0:
             raise ValueError(f"gccp.mask_margin must be a non-negative number, got {self.mask_margin!r}")
         for name in ("mask_after_episodes", "predictor_steps_per_episode", "mask_extrapolate_steps"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise ValueError(f"gccp.{name} must be a non-negative integer, got {value!r}")
+            require_int(f"gccp.{name}", getattr(self, name), minimum=0)
         if self.planner_episodes is not None and (
             not isinstance(self.planner_episodes, int) or self.planner_episodes < 1
         ):
             raise ValueError(
                 f"gccp.planner_episodes must be a positive integer or null, got {self.planner_episodes!r}"
             )
-        if not self.predictor_learning_rate > 0:
-            raise ValueError(
-                f"gccp.predictor_learning_rate must be positive, got {self.predictor_learning_rate!r}"
-            )
+        require_positive("gccp.predictor_learning_rate", self.predictor_learning_rate)
         PredictorConfig.from_dict(self.predictor_kwargs)
 
     @classmethod

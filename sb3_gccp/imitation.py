@@ -19,7 +19,7 @@ import numpy as np
 import torch as th
 from sb3_contrib import MaskablePPO
 
-from gccp_envs.config import IntersectionConfig, reject_unknown_keys
+from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int, require_positive
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import ScriptedPlanner
 from sb3_gccp.progress import new_bar
@@ -40,12 +40,8 @@ class ImitationSettings:
 
     def __post_init__(self) -> None:
         for name in ("expert_steps", "epochs", "batch_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"imitation.{name} must be a positive integer, got {value!r}")
-        rate = self.learning_rate
-        if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not rate > 0:
-            raise ValueError(f"imitation.learning_rate must be a positive number, got {rate!r}")
+            require_int(f"imitation.{name}", getattr(self, name))
+        require_positive("imitation.learning_rate", self.learning_rate)
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any] | None) -> ImitationSettings:

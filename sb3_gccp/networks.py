@@ -48,7 +48,7 @@ import torch as th
 import torch.nn.functional as F
 from torch import nn
 
-from gccp_envs.config import IntersectionConfig, reject_unknown_keys
+from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int
 from gccp_envs.observation import HISTORY_FEATURES, ROUTE_FEATURES
 
 HISTORY_LAYOUT = ("distance", "distance", "angle", "speed") * 2 + ("index",)
@@ -94,9 +94,7 @@ class EncoderConfig:
     def __post_init__(self) -> None:
         positive = ("hidden_size", "num_heads", "token_size", "token_heads", "history_patch", "route_patch")
         for name in (*positive, "bev_pool"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            require_int(name, getattr(self, name))
         if self.hidden_size % self.num_heads:
             raise ValueError(
                 f"hidden_size {self.hidden_size} is not a multiple of num_heads {self.num_heads}"

@@ -30,7 +30,7 @@ import numpy as np
 import torch as th
 from torch import nn
 
-from gccp_envs.config import DT, IntersectionConfig, reject_unknown_keys
+from gccp_envs.config import DT, IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
 
@@ -54,10 +54,7 @@ class PredictorConfig:
 
     def __post_init__(self) -> None:
         EncoderConfig.from_dict(self.encoder)
-        if not isinstance(self.decoder_hidden, int) or isinstance(self.decoder_hidden, bool):
-            raise ValueError(f"decoder_hidden must be a positive integer, got {self.decoder_hidden!r}")
-        if self.decoder_hidden < 1:
-            raise ValueError(f"decoder_hidden must be a positive integer, got {self.decoder_hidden!r}")
+        require_int("decoder_hidden", self.decoder_hidden)
         for name in ("goal_condition", "cv_residual"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a boolean, got {getattr(self, name)!r}")

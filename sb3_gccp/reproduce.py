@@ -54,7 +54,7 @@ import yaml
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.monitor import load_results
 
-from gccp_envs.config import DT, TASKS, IntersectionConfig, reject_unknown_keys
+from gccp_envs.config import DT, TASKS, IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.baselines import (
     BASELINE_FILE,
     FLAT_ENV_ID,
@@ -164,11 +164,11 @@ class Preset:
 
     def __post_init__(self) -> None:
         for name in ("planner_timesteps", "episodes", "episodes_per_task", "heldout_episodes"):
-            _check_int(name, getattr(self, name), 1)
+            require_int(f"preset {name}", getattr(self, name))
         if self.mask_after_episodes is not None:
-            _check_int("mask_after_episodes", self.mask_after_episodes, 0)
+            require_int("preset mask_after_episodes", self.mask_after_episodes, minimum=0)
         if self.n_envs is not None:
-            _check_int("n_envs", self.n_envs, 1)
+            require_int("preset n_envs", self.n_envs)
         for name in ("encoder", "world", "hyperparams"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, Mapping):
@@ -215,12 +215,6 @@ class Preset:
                     raise ValueError(f"preset {key}: {part} is not a map")
             target[path[-1]] = value
         return Preset.from_dict(data)
-
-
-def _check_int(name: str, value: Any, minimum: int) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        kind = "a positive" if minimum == 1 else "a non-negative"
-        raise ValueError(f"preset {name} must be {kind} integer, got {value!r}")
 
 
 TRAINING_FIELDS = (

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gccp_envs.config import DT, TASKS, IntersectionConfig
+from gccp_envs.config import DT, TASKS, IntersectionConfig, require_int, require_positive
 
 
 def test_paper_constants():
@@ -89,3 +89,31 @@ def test_config_is_frozen():
     cfg = IntersectionConfig()
     with pytest.raises(AttributeError):
         cfg.task = "left"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("value", "minimum", "message"),
+    [
+        (0, 1, "x must be a positive integer, got 0"),
+        (True, 1, "x must be a positive integer, got True"),
+        (2.0, 1, "x must be a positive integer, got 2.0"),
+        (-1, 0, "x must be a non-negative integer, got -1"),
+    ],
+)
+def test_require_int_rejects_in_one_line(value, minimum, message):
+    with pytest.raises(ValueError) as err:
+        require_int("x", value, minimum)
+    assert str(err.value) == message
+
+
+def test_require_int_and_positive_accept_good_values():
+    require_int("x", 0, minimum=0)
+    require_int("x", 3)
+    require_positive("x", 1e-9)
+    require_positive("x", 2)
+
+
+@pytest.mark.parametrize("value", [0, -0.5, False, "1", None])
+def test_require_positive_rejects(value):
+    with pytest.raises(ValueError, match=f"^x must be a positive number, got {value!r}$"):
+        require_positive("x", value)
