@@ -15,7 +15,8 @@ forward path within the ego's turn radius and driving range reaches (Dubins path
 traffic ignored), an upper bound on any planner's subgoal reach over the same draws.
 
 Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
-[--oracle]; ``--model scripted`` measures the scripted pure-pursuit planner, the reference.
+[--oracle]; ``--model scripted`` measures the scripted pure-pursuit planner, ``--model search`` the
+search planner (``gccp_envs.scripted.SearchPlanner``): the experts the planner stage can clone.
 Last line: ``task_completion_empty_road <rate>`` (goals: completion >= 0.98, reach >= 0.95,
 off-road <= 0.01).
 """
@@ -34,7 +35,7 @@ from gccp_envs.config import DT, TASKS, IntersectionConfig
 from gccp_envs.geometry import dubins_length
 from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
-from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner
+from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import FrozenPolicy
 
@@ -150,7 +151,7 @@ def stopping(planner: Planner, episodes: int, seed: int, steps: int = 40) -> flo
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", required=True, help="the planner's SB3 .zip, or 'scripted'")
+    parser.add_argument("--model", required=True, help="the planner's SB3 .zip, 'scripted' or 'search'")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per task in each part")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--hold-steps", type=int, default=30, help="steps each drawn subgoal is held")
@@ -160,8 +161,9 @@ def main() -> None:
         help="also search every drawn subgoal's action sequences: the reach no planner can beat",
     )
     args = parser.parse_args()
+    experts = {"scripted": ScriptedPlanner, "search": SearchPlanner}
     planner: Planner = (
-        ScriptedPlanner(IntersectionConfig()) if args.model == "scripted" else FrozenPolicy(args.model)
+        experts[args.model](IntersectionConfig()) if args.model in experts else FrozenPolicy(args.model)
     )
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from gccp_envs.action import EgoAction
-from gccp_envs.config import IntersectionConfig
+from gccp_envs.config import DT, IntersectionConfig
 
 
 class ScriptedPlanner:
@@ -49,6 +49,97 @@ class ScriptedPlanner:
             if action_mask is None or action_mask[int(action)]:
                 return int(action)
         return int(EgoAction.SLOW_DOWN)
+
+
+class SearchPlanner:
+    """Earliest arrival over a fixed library of action sequences, by the ego's exact kinematics.
+
+    Every step it rolls out, from the ego's speed, each sequence of the library for ``horizon`` steps:
+    one action held, then another held to the end (all 6 x 6 pairs and switch times), and the lane
+    change's S-curve: a turn, the opposite turn, then 'keep direction' or 'slow down'. It takes the
+    first action of the sequence that reaches the goal (within ``radius_share`` of the reach radius and
+    ``heading_share`` of the heading tolerance) soonest, or, if none does, that ends nearest to it.
+    A goal beside or behind the ego, or already reached, means stop. Like :class:`ScriptedPlanner` it
+    sees the observation only and ignores traffic (the decision-maker's job); it reaches more subgoals
+    because it plans the heading as well as the position (README, Motion-planner).
+    """
+
+    def __init__(
+        self,
+        config: IntersectionConfig,
+        horizon: int = 30,
+        radius_share: float = 0.75,
+        heading_share: float = 0.8,
+    ) -> None:
+        self.config = config
+        self.horizon = horizon
+        self.radius = config.subgoal_reach_radius * radius_share
+        self.heading = config.subgoal_reach_heading * heading_share
+        slow, quick = config.slow_turn_curvature, config.quick_turn_curvature
+        self._curvature = np.array([0.0, 0.0, -slow, slow, -quick, quick])
+        t = np.arange(horizon)[None]
+        # One action, then another from a switch step on (a switch at the horizon: the first alone).
+        first, switch, second = (v.ravel() for v in np.meshgrid(range(6), range(1, horizon + 1), range(6)))
+        single = (switch == horizon) & (second > 0)
+        first, switch, second = first[~single], switch[~single], second[~single]
+        pairs = np.where(t < switch[:, None], first[:, None], second[:, None])
+        # S-curves: turn, opposite turn, then straight on or braking; each arc at most 1.5 s.
+        opposite = {2: 3, 3: 2, 4: 5, 5: 4}
+        arc = range(1, min(horizon, 16))
+        rows = [
+            np.where(t < k1, a, np.where(t < k1 + k2, opposite[a], end))[0]
+            for a in opposite
+            for k1 in arc
+            for k2 in arc
+            if k1 + k2 < horizon
+            for end in (EgoAction.KEEP_DIRECTION, EgoAction.SLOW_DOWN)
+        ]
+        self.sequences = np.concatenate([pairs, np.array(rows)]).astype(np.int64)
+        """(S, horizon) actions of the library."""
+
+    def rollout(self, speed: float) -> np.ndarray:
+        """Ego-frame poses (x, y, heading) of every sequence from the origin at ``speed``, (S, horizon, 3)."""
+        cfg, actions = self.config, self.sequences
+        n = len(actions)
+        x, y, heading, v = np.zeros(n), np.zeros(n), np.zeros(n), np.full(n, speed)
+        poses = np.empty((n, self.horizon, 3))
+        for step in range(self.horizon):
+            a = actions[:, step]
+            braked = np.maximum(v - cfg.deceleration * DT, 0.0)
+            kept = np.maximum(np.minimum(v + cfg.acceleration * DT, cfg.cruise_speed), braked)
+            new_v = np.where(
+                a == EgoAction.SLOW_DOWN, braked, np.where(a == EgoAction.KEEP_DIRECTION, kept, v)
+            )
+            distance = 0.5 * (v + new_v) * DT
+            turn = self._curvature[a] * distance
+            chord = distance * np.sinc(turn / (2.0 * np.pi))  # the exact arc, as EgoMotion drives it
+            x = x + chord * np.cos(heading + turn / 2.0)
+            y = y + chord * np.sin(heading + turn / 2.0)
+            heading, v = heading + turn, new_v
+            poses[:, step] = np.stack((x, y, heading), -1)
+        return poses
+
+    def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray | None = None) -> int:
+        """The action for one step."""
+        gx, gy, gh = (float(v) for v in obs["goal"][:3])
+        speed = float(obs["history"][0, -1, 7])
+        distance = float(np.hypot(gx, gy))
+        if (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading):
+            return int(EgoAction.SLOW_DOWN)
+        poses = self.rollout(speed)
+        miss = np.hypot(poses[..., 0] - gx, poses[..., 1] - gy)
+        turn = np.abs((poses[..., 2] - gh + np.pi) % (2.0 * np.pi) - np.pi)
+        hit = (miss <= self.radius) & (turn <= self.heading)
+        reached = hit.any(1)
+        # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
+        lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
+        end_speed = np.hypot(*(poses[:, -1, :2] - poses[:, -2, :2]).T) / DT
+        line = lateral + 3.0 * turn[:, -1] + 0.5 * (self.config.cruise_speed - end_speed)
+        cost = np.where(reached, hit.argmax(1), self.horizon + 1 + line)
+        first = self.sequences[:, 0]
+        if action_mask is not None:
+            cost = np.where(np.asarray(action_mask, bool)[first], cost, np.inf)
+        return int(first[np.argmin(cost)])
 
 
 class FarthestSubgoalDecider:

@@ -21,16 +21,22 @@ from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int, require_positive
 from gccp_envs.planner_env import GCCPPlannerEnv
-from gccp_envs.scripted import ScriptedPlanner
+from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
 from sb3_gccp.progress import new_bar
+
+EXPERTS = {"scripted": ScriptedPlanner, "search": SearchPlanner}
+"""The planners the planner stage can clone, by the name the ``imitation.expert`` key takes."""
 
 
 @dataclass(frozen=True)
 class ImitationSettings:
     """The ``imitation`` map of a planner entry (ours; the paper trains the planner by PPO only)."""
 
+    expert: str = "scripted"
+    """The planner to clone: 'scripted' (pure pursuit, :class:`ScriptedPlanner`) or 'search' (earliest
+    arrival over an action-sequence library, :class:`SearchPlanner`)."""
     expert_steps: int = 40_000
-    """Planner-env steps the scripted planner drives to make the data set (one env, seeded episodes)."""
+    """Planner-env steps the expert drives to make the data set (one env, seeded episodes)."""
     epochs: int = 4
     """Passes over the data set."""
     batch_size: int = 256
@@ -39,6 +45,8 @@ class ImitationSettings:
     """Adam's learning rate of the cloning (PPO's optimiser is not touched)."""
 
     def __post_init__(self) -> None:
+        if self.expert not in EXPERTS:
+            raise ValueError(f"imitation.expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         for name in ("expert_steps", "epochs", "batch_size"):
             require_int(f"imitation.{name}", getattr(self, name))
         require_positive("imitation.learning_rate", self.learning_rate)
@@ -68,14 +76,17 @@ class ExpertData:
     episodes: int
 
 
-def collect_expert(world: IntersectionConfig, steps: int, seed: int, progress: bool = False) -> ExpertData:
-    """Drive the scripted planner on ``GCCPPlanner-v0`` for ``steps`` steps (episodes seeded from
+def collect_expert(
+    world: IntersectionConfig, steps: int, seed: int, progress: bool = False, expert: str = "scripted"
+) -> ExpertData:
+    """Drive an expert planner on ``GCCPPlanner-v0`` for ``steps`` steps (episodes seeded from
     ``seed`` on).
 
+    :param expert: a key of ``EXPERTS``
     :return: the transitions
     """
     env = GCCPPlannerEnv(world)
-    expert = ScriptedPlanner(env.config)
+    driver = EXPERTS[expert](env.config)
     records: list[dict[str, np.ndarray]] = []
     masks, actions = [], []
     episode = 0
@@ -83,7 +94,7 @@ def collect_expert(world: IntersectionConfig, steps: int, seed: int, progress: b
     with new_bar(total=steps, enabled=progress, desc="expert steps") as bar:
         for _ in range(steps):
             mask = env.action_masks()
-            action = expert(obs, mask)
+            action = driver(obs, mask)
             records.append(obs)
             masks.append(mask)
             actions.append(action)

@@ -105,7 +105,7 @@ def train_planner(request: StageRequest) -> Path:
         env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(ppo_settings, n_timesteps)
     )
     if imitation is not None and checkpoint is None:
-        data = collect_expert(world, imitation.expert_steps, seed, request.progress_bar)
+        data = collect_expert(world, imitation.expert_steps, seed, request.progress_bar, imitation.expert)
         history = clone(model, data, imitation, seed, request.progress_bar)
         record = {"settings": imitation.to_dict(), "expert_episodes": data.episodes, "epochs": history}
         (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")

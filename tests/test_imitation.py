@@ -16,7 +16,7 @@ from helpers import TINY_PLANNER_HYPERPARAMS
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
-from gccp_envs.scripted import ScriptedPlanner
+from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
 from sb3_gccp.imitation import ImitationSettings, clone, collect_expert
 
 WORLD = IntersectionConfig(spawn_probability=0.0, warmup_time=0.0, duration=4.0)
@@ -30,6 +30,13 @@ def test_expert_data_are_the_scripted_planners_actions_under_the_envs_masks():
     expert = ScriptedPlanner(WORLD)
     first = {key: value[0] for key, value in data.obs.items()}
     assert expert(first, data.masks[0]) == data.actions[0]
+
+
+def test_search_expert_data_are_the_search_planners_actions():
+    data = collect_expert(WORLD, 30, seed=5, expert="search")
+    assert data.masks[np.arange(30), data.actions].all()
+    first = {key: value[0] for key, value in data.obs.items()}
+    assert SearchPlanner(WORLD)(first, data.masks[0]) == data.actions[0]
 
 
 def test_cloning_makes_the_policy_choose_the_experts_actions():
@@ -51,6 +58,7 @@ def test_cloning_makes_the_policy_choose_the_experts_actions():
         ({"epochs": 0}, "imitation.epochs must be a positive integer"),
         ({"learning_rate": -1.0}, "imitation.learning_rate must be a positive number"),
         ({"expert_step": 10}, "expert_step"),
+        ({"expert": "human"}, "imitation.expert must be one of scripted, search, got 'human'"),
         ([1, 2], "imitation must be a map"),
     ],
 )

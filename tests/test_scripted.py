@@ -9,7 +9,7 @@ from helpers import path_pose, place_ego_on_path
 
 from gccp_envs.action import EgoAction
 from gccp_envs.config import IntersectionConfig
-from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner
+from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
 
 PLANNER = ScriptedPlanner(IntersectionConfig())
 
@@ -78,3 +78,40 @@ def test_farthest_subgoal_decider():
     mask = np.zeros(12, bool)
     mask[[1, 7]] = True
     assert decider({"subgoals": subgoals}, mask) == 7
+
+
+SEARCH = SearchPlanner(IntersectionConfig())
+
+
+def test_search_planner_rollout_is_the_egos_kinematics():
+    from gccp_envs.action import EgoMotion, EgoState
+
+    motion = EgoMotion(IntersectionConfig())
+    poses = SEARCH.rollout(5.0)
+    for row in (0, len(SEARCH.sequences) // 2, len(SEARCH.sequences) - 1):
+        state = EgoState(0.0, 0.0, 0.0, 5.0)
+        for step, action in enumerate(SEARCH.sequences[row]):
+            state = motion.step(state, int(action))
+            np.testing.assert_allclose(poses[row, step, :2], (state.x, state.y), atol=1e-9)
+            assert abs(np.angle(np.exp(1j * (poses[row, step, 2] - state.heading)))) < 1e-9
+
+
+@pytest.mark.parametrize(
+    ("goal", "speed", "action"),
+    [
+        ((15.0, 0.0, 0.0), 4.0, EgoAction.KEEP_DIRECTION),  # accelerating arrives soonest
+        ((10.0, -4.0, 0.0), 6.0, EgoAction.QUICKLY_TURN_LEFT),  # a lane change: the S-curve starts left
+        ((10.0, 4.0, 0.0), 6.0, EgoAction.QUICKLY_TURN_RIGHT),
+        ((0.5, 0.0, 0.0), 3.0, EgoAction.SLOW_DOWN),  # reached: stop on it
+        ((-1.0, 0.0, 0.0), 2.0, EgoAction.SLOW_DOWN),  # behind: stand still
+    ],
+)
+def test_search_planner_actions(goal, speed, action):
+    assert SEARCH(planner_obs(goal, speed)) == action
+
+
+def test_search_planner_respects_the_mask():
+    mask = np.ones(6, bool)
+    mask[EgoAction.QUICKLY_TURN_LEFT] = False
+    action = SEARCH(planner_obs((10.0, -4.0, 0.0), 6.0), mask)
+    assert mask[action]
