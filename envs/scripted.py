@@ -51,6 +51,12 @@ class ScriptedPlanner:
         return int(EgoAction.SLOW_DOWN)
 
 
+BOX_HALF_LENGTH = 2.5
+"""Half the ego's length [m] (the vehicles' 5 m)."""
+BOX_HALF_WIDTH = 1.0
+"""Half the ego's width [m] (the vehicles' 2 m)."""
+
+
 class SearchPlanner:
     """Earliest arrival over a fixed library of action sequences, by the ego's exact kinematics.
 
@@ -119,6 +125,28 @@ class SearchPlanner:
             poses[:, step] = np.stack((x, y, heading), -1)
         return poses
 
+    def on_road(self, poses: np.ndarray, bev: np.ndarray) -> np.ndarray:
+        """Whether the corners of the ego's box, slightly shrunk for the BEV's pixel size, are on the
+        drivable area of the bird's-eye view at each ego-frame pose; poses beyond the view count as on it.
+
+        :param poses: (..., 3) ego-frame poses
+        :param bev: (S, S) drivable area, ego at the centre, forward up (the observation's ``bev[0]``)
+        """
+        cfg = self.config
+        size = bev.shape[0]
+        pixel = cfg.bev_extent / size
+        half_length, half_width = BOX_HALF_LENGTH - pixel / 2.0, BOX_HALF_WIDTH - pixel / 2.0
+        ok = np.ones(poses.shape[:-1], bool)
+        c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
+        for along, side in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            x = poses[..., 0] + along * half_length * c - side * half_width * s
+            y = poses[..., 1] + along * half_length * s + side * half_width * c
+            row = np.floor(size / 2.0 - x / pixel).astype(np.int64)
+            col = np.floor(y / pixel + size / 2.0).astype(np.int64)
+            inside = (row >= 0) & (row < size) & (col >= 0) & (col < size)
+            ok &= ~inside | (bev[np.clip(row, 0, size - 1), np.clip(col, 0, size - 1)] > 0)
+        return ok
+
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray | None = None) -> int:
         """The action for one step."""
         gx, gy, gh = (float(v) for v in obs["goal"][:3])
@@ -129,13 +157,22 @@ class SearchPlanner:
         poses = self.rollout(speed)
         miss = np.hypot(poses[..., 0] - gx, poses[..., 1] - gy)
         turn = np.abs((poses[..., 2] - gh + np.pi) % (2.0 * np.pi) - np.pi)
-        hit = (miss <= self.radius) & (turn <= self.heading)
+        on_road = np.ones(poses.shape[:2], bool) if "bev" not in obs else self.on_road(poses, obs["bev"][0])
+        # Only what is driven before the first step off the road counts.
+        before_off = np.cumprod(on_road, axis=1).astype(bool)
+        hit = (miss <= self.radius) & (turn <= self.heading) & before_off
         reached = hit.any(1)
         # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
         lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
-        end_speed = np.hypot(*(poses[:, -1, :2] - poses[:, -2, :2]).T) / DT
-        line = lateral + 3.0 * turn[:, -1] + 0.5 * (self.config.cruise_speed - end_speed)
-        cost = np.where(reached, hit.argmax(1), self.horizon + 1 + line)
+        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
+        speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
+        slack = 1.0 - speed_after / self.config.cruise_speed
+        line = lateral + 3.0 * turn[:, -1] + 4.0 * slack[:, -1] + 100.0 * ~before_off[:, -1]
+        # Soonest arrival; between equally soon ones, the faster (it needs less to go on).
+        arrival = hit.argmax(1)
+        cost = np.where(
+            reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
+        )
         first = self.sequences[:, 0]
         if action_mask is not None:
             cost = np.where(np.asarray(action_mask, bool)[first], cost, np.inf)

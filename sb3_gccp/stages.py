@@ -41,7 +41,7 @@ from sb3_gccp.hyperparams import (
     resolve_policy_kwargs,
     resolve_schedule,
 )
-from sb3_gccp.imitation import ImitationSettings, clone, collect_expert
+from sb3_gccp.imitation import ImitationSettings, imitate
 from sb3_gccp.progress import StepBar
 
 PLANNER_ENV_ID = "GCCPPlanner-v0"
@@ -105,9 +105,7 @@ def train_planner(request: StageRequest) -> Path:
         env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(ppo_settings, n_timesteps)
     )
     if imitation is not None and checkpoint is None:
-        data = collect_expert(world, imitation.expert_steps, seed, request.progress_bar, imitation.expert)
-        history = clone(model, data, imitation, seed, request.progress_bar)
-        record = {"settings": imitation.to_dict(), "expert_episodes": data.episodes, "epochs": history}
+        record = imitate(model, world, imitation, seed, request.progress_bar)
         (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")
     callbacks: list[BaseCallback] = [
         CheckpointCallback(

@@ -94,6 +94,40 @@ def test_planner_stage_clones_then_saves_without_ppo_steps(tmp_path):
     assert MaskablePPO.load(run / "planner.zip").num_timesteps == 0
 
 
+def test_dagger_rounds_let_the_policy_drive_and_the_expert_label(tmp_path):
+    entry = {
+        **TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"],
+        "n_timesteps": 0,
+        "imitation": {
+            "expert": "search",
+            "expert_steps": 30,
+            "epochs": 1,
+            "batch_size": 20,
+            "dagger_rounds": 2,
+            "dagger_steps": 20,
+        },
+    }
+    result = _train(tmp_path, entry)
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "planner").iterdir()
+    record = json.loads((run / "imitation.json").read_text())
+    assert [r["data_steps"] for r in record["dagger"]] == [50, 70]
+    assert all(0.0 <= r["policy_agreed"] <= 1.0 and len(r["epochs"]) == 1 for r in record["dagger"])
+
+
+def test_dagger_data_are_the_drivers_states_with_the_experts_actions():
+    always_right = lambda obs, mask: int(np.flatnonzero(mask)[-1])  # noqa: E731
+    data = collect_expert(WORLD, 40, seed=1, driver=always_right)
+    expert = ScriptedPlanner(WORLD)
+    labels = [expert({k: v[i] for k, v in data.obs.items()}, data.masks[i]) for i in range(40)]
+    assert data.actions.tolist() == labels
+    drove = [always_right(None, m) for m in data.masks]
+    assert data.agreement == np.mean(np.array(drove) == data.actions)
+    merged = data + collect_expert(WORLD, 10, seed=2)
+    assert len(merged.actions) == 50 and merged.obs["goal"].shape[0] == 50
+    assert merged.agreement == (data.agreement * 40 + 10) / 50
+
+
 def test_zero_ppo_steps_without_imitation_and_a_bad_imitation_key_are_one_line_errors(tmp_path):
     entry = {**TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"], "n_timesteps": 0}
     result = _train(tmp_path, entry)
