@@ -152,7 +152,9 @@ class SearchPlanner:
         gx, gy, gh = (float(v) for v in obs["goal"][:3])
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
-        if (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading):
+        allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
+        stop = (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading)
+        if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
         poses = self.rollout(speed)
         miss = np.hypot(poses[..., 0] - gx, poses[..., 1] - gy)
@@ -174,9 +176,9 @@ class SearchPlanner:
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
         first = self.sequences[:, 0]
-        if action_mask is not None:
-            cost = np.where(np.asarray(action_mask, bool)[first], cost, np.inf)
-        return int(first[np.argmin(cost)])
+        if not allowed.any():
+            return int(first[np.argmin(cost)])
+        return int(first[np.argmin(np.where(allowed[first], cost, np.inf))])
 
 
 class FarthestSubgoalDecider:

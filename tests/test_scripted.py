@@ -115,3 +115,10 @@ def test_search_planner_respects_the_mask():
     mask[EgoAction.QUICKLY_TURN_LEFT] = False
     action = SEARCH(planner_obs((10.0, -4.0, 0.0), 6.0), mask)
     assert mask[action]
+
+
+def test_search_planner_never_takes_a_masked_action():
+    only_turns = np.zeros(6, bool)
+    only_turns[[EgoAction.SLOWLY_TURN_LEFT, EgoAction.SLOWLY_TURN_RIGHT]] = True
+    for goal, speed in (((0.5, 0.0, 0.0), 3.0), ((-1.0, 0.0, 0.0), 2.0), ((15.0, 0.0, 0.0), 4.0)):
+        assert only_turns[SEARCH(planner_obs(goal, speed), only_turns)]
