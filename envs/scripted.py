@@ -62,10 +62,13 @@ class SearchPlanner:
 
     Every step it rolls out, from the ego's speed, each sequence of the library for ``horizon`` steps:
     one action held, then another held to the end (all 6 x 6 pairs and switch times), and the lane
-    change's S-curve: a turn, the opposite turn, then 'keep direction' or 'slow down'. It takes the
+    change's S-curve: a turn, the opposite turn, then 'keep direction' or 'slow down'. A sequence counts
+    only up to its first step whose box leaves the drivable area of the observation's BEV. It takes the
     first action of the sequence that reaches the goal (within ``radius_share`` of the reach radius and
-    ``heading_share`` of the heading tolerance) soonest, or, if none does, that ends nearest to it.
-    A goal beside or behind the ego, or already reached, means stop. Like :class:`ScriptedPlanner` it
+    ``heading_share`` of the heading tolerance) soonest, the faster of equally soon ones, or, if none
+    does, of the one that ends on the goal's line, heading its way, at speed. A goal beside or behind
+    the ego, or already reached, means braking. It never takes a masked action (unless all are masked).
+    Like :class:`ScriptedPlanner` it
     sees the observation only and ignores traffic (the decision-maker's job); it reaches more subgoals
     because it plans the heading as well as the position (README, Motion-planner).
     """
