@@ -35,9 +35,10 @@ from gccp_envs.config import DT, TASKS, IntersectionConfig
 from gccp_envs.geometry import dubins_length
 from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
-from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
+from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.imitation import EXPERTS
 
 LANE_CHANGE_OFFSET = 3.0
 """A subgoal at least this far [m] to the side of the ego when drawn needs a lane change."""
@@ -161,9 +162,8 @@ def main() -> None:
         help="also search every drawn subgoal's action sequences: the reach no planner can beat",
     )
     args = parser.parse_args()
-    experts = {"scripted": ScriptedPlanner, "search": SearchPlanner}
     planner: Planner = (
-        experts[args.model](IntersectionConfig()) if args.model in experts else FrozenPolicy(args.model)
+        EXPERTS[args.model](IntersectionConfig()) if args.model in EXPERTS else FrozenPolicy(args.model)
     )
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)

@@ -95,6 +95,29 @@ class EgoMotion:
             poses[k] = (state.x, state.y, state.heading)
         return poses
 
+    def step_many(
+        self, poses: FloatArray, speeds: FloatArray, actions: np.ndarray
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`step` for many states at once: poses (n, 3) (x, y, heading; the heading is not
+        wrapped), speeds (n,) and one action each (n,); returns the new poses and speeds."""
+        cfg = self.config
+        braked = np.maximum(speeds - cfg.deceleration * DT, 0.0)
+        kept = np.maximum(np.minimum(speeds + cfg.acceleration * DT, cfg.cruise_speed), braked)
+        new_speeds = np.where(
+            actions == EgoAction.SLOW_DOWN,
+            braked,
+            np.where(actions == EgoAction.KEEP_DIRECTION, kept, speeds),
+        )
+        distance = 0.5 * (speeds + new_speeds) * DT
+        turn = self.curvature[actions] * distance
+        chord = distance * np.sinc(turn / (2.0 * np.pi))
+        middle = poses[:, 2] + turn / 2.0
+        moved = np.stack(
+            (poses[:, 0] + chord * np.cos(middle), poses[:, 1] + chord * np.sin(middle), poses[:, 2] + turn),
+            -1,
+        )
+        return moved, new_speeds
+
     def step(self, state: EgoState, action: int) -> EgoState:
         """The ego state after one step of ``action``."""
         (dx, dy, dheading), speed = self.pose_change(state.speed, action)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gccp_envs.action import EgoAction
+from gccp_envs.action import EgoAction, EgoMotion
 from gccp_envs.config import DT, IntersectionConfig
 
 
@@ -84,8 +84,7 @@ class SearchPlanner:
         self.horizon = horizon
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
-        slow, quick = config.slow_turn_curvature, config.quick_turn_curvature
-        self._curvature = np.array([0.0, 0.0, -slow, slow, -quick, quick])
+        self.motion = EgoMotion(config)
         t = np.arange(horizon)[None]
         # One action, then another from a switch step on (a switch at the horizon: the first alone).
         first, switch, second = (v.ravel() for v in np.meshgrid(range(6), range(1, horizon + 1), range(6)))
@@ -108,24 +107,12 @@ class SearchPlanner:
 
     def rollout(self, speed: float) -> np.ndarray:
         """Ego-frame poses (x, y, heading) of every sequence from the origin at ``speed``, (S, horizon, 3)."""
-        cfg, actions = self.config, self.sequences
-        n = len(actions)
-        x, y, heading, v = np.zeros(n), np.zeros(n), np.zeros(n), np.full(n, speed)
+        n = len(self.sequences)
+        pose, v = np.zeros((n, 3)), np.full(n, speed)
         poses = np.empty((n, self.horizon, 3))
         for step in range(self.horizon):
-            a = actions[:, step]
-            braked = np.maximum(v - cfg.deceleration * DT, 0.0)
-            kept = np.maximum(np.minimum(v + cfg.acceleration * DT, cfg.cruise_speed), braked)
-            new_v = np.where(
-                a == EgoAction.SLOW_DOWN, braked, np.where(a == EgoAction.KEEP_DIRECTION, kept, v)
-            )
-            distance = 0.5 * (v + new_v) * DT
-            turn = self._curvature[a] * distance
-            chord = distance * np.sinc(turn / (2.0 * np.pi))  # the exact arc, as EgoMotion drives it
-            x = x + chord * np.cos(heading + turn / 2.0)
-            y = y + chord * np.sin(heading + turn / 2.0)
-            heading, v = heading + turn, new_v
-            poses[:, step] = np.stack((x, y, heading), -1)
+            pose, v = self.motion.step_many(pose, v, self.sequences[:, step])
+            poses[:, step] = pose
         return poses
 
     def on_road(self, poses: np.ndarray, bev: np.ndarray) -> np.ndarray:

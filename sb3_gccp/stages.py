@@ -86,10 +86,11 @@ def latest_run(stage_dir: Path) -> Path | None:
 def train_planner(request: StageRequest) -> Path:
     """Train the motion-planner with MaskablePPO on ``GCCPPlanner-v0``; return the model path.
 
-    With an ``imitation`` map in the entry, the policy first clones the scripted planner
-    (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well) and PPO continues from there for
-    ``n_timesteps`` (0: cloning only). With ``request.resume`` (a run folder), training continues from
-    its last checkpoint with the run's own resolved config, up to the same total budget.
+    With an ``imitation`` map in the entry, the policy first clones a scripted expert planner, with
+    DAgger rounds if asked (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well), and PPO
+    continues from there for ``n_timesteps`` (0: cloning only). With ``request.resume`` (a run
+    folder), training continues from its last checkpoint with the run's own resolved config, up to the
+    same total budget.
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
@@ -134,7 +135,7 @@ def train_planner(request: StageRequest) -> Path:
 
 
 IMITATION_KEY = "imitation"
-"""The planner entry's own key: behaviour cloning of the scripted planner before PPO."""
+"""The planner entry's own key: imitation of a scripted expert planner before PPO."""
 
 
 def imitation_settings(settings: dict[str, Any]) -> ImitationSettings | None:
