@@ -59,6 +59,8 @@ def test_cloning_makes_the_policy_choose_the_experts_actions():
         ({"learning_rate": -1.0}, "imitation.learning_rate must be a positive number"),
         ({"expert_step": 10}, "expert_step"),
         ({"expert": "human"}, "imitation.expert must be one of scripted, search, got 'human'"),
+        ({"dagger_rounds": -1}, "imitation.dagger_rounds must be a non-negative integer, got -1"),
+        ({"dagger_steps": 0}, "imitation.dagger_steps must be a positive integer, got 0"),
         ([1, 2], "imitation must be a map"),
     ],
 )
