@@ -1,9 +1,9 @@
 """How well a frozen motion-planner reaches subgoals and completes tasks.
 
-1. ``GCCPPlanner-v0`` with default traffic, subgoals drawn uniformly from the 12 candidates and held
-   for ``--hold-steps`` (3 s by default, so that even the farthest candidate is within reach): the share
-   of subgoals reached, over the subgoals whose hold was not cut short by a collision or the time
-   limit, and the share of episodes that end off the road.
+1. ``GCCPPlanner-v0`` with default traffic, subgoals drawn uniformly from the candidates ahead and
+   held for ``--hold-steps`` (3 s by default, so that even the farthest candidate is within reach): the
+   share of subgoals reached, over the subgoals whose hold was not cut short by a collision, the time
+   limit or the task's exit (see ``CUT_SHORT``), and the share of episodes that end off the road.
 2. Stopping: on empty roads the planner is given only "hold" subgoals (the candidate nearest the ego,
    redrawn every T_m steps) for 4 s: the share of episodes where it stands (below 0.5 m/s) at the end and did
    not leave the road. A decision-maker can only yield with a planner that stops.
@@ -45,6 +45,11 @@ LANE_CHANGE_OFFSET = 3.0
 LANE_CHANGE_LENGTH = 9.0
 """Lane-change subgoals drawn less than this far ahead [m] are counted apart: a 4 m shift back to the
 lane's heading with the quickest turn (radius 6 m, two opposite arcs of 48 degrees) takes about 9 m."""
+CUT_SHORT = ("crashed", "timeout", "is_success")
+"""Episode ends that leave a hold out of the reach rate unless its subgoal was reached: a collision
+(the planner ignores traffic), the time limit, and the task's exit (candidates lie up to 20 m along the
+route, so some lie beyond the exit line, where the episode has already ended). Leaving the road and
+a wrong exit are the planner's failures and count as misses."""
 TARGET_SPACING = 0.1
 """Spacing [m] of the positions ``reach_bound`` samples within a subgoal's reach radius."""
 TARGET_TURN_SPACING = 0.01
@@ -94,6 +99,7 @@ def subgoal_reaching(
         decision_period=hold_steps, prediction_horizon=min(10, hold_steps), hold_probability=0.0
     )
     reached = counted = offroad = total = short = short_reached = feasible = short_feasible = 0
+    cut_short = dict.fromkeys(CUT_SHORT, 0)
 
     def count(goal: np.ndarray, hit: bool, start: EgoState, world_goal: np.ndarray) -> None:
         nonlocal reached, counted, short, short_reached, feasible, short_feasible
@@ -113,9 +119,14 @@ def subgoal_reaching(
                 hit |= info["goal_reached"]
                 steps_held += 1
                 if terminated or truncated:
-                    # A hold cut short by a collision or the time limit says nothing about the planner.
-                    if hit or not (info["crashed"] or info["timeout"]):
+                    # A hold cut short by an end the planner did not cause says nothing about it: a
+                    # collision (it ignores traffic), the time limit, or the task's exit, which ends the
+                    # episode before a candidate drawn beyond it can be reached.
+                    cut = next((end for end in CUT_SHORT if info[end]), None)
+                    if hit or cut is None:
                         count(goal, hit, start, world_goal)
+                    else:
+                        cut_short[cut] += 1
                     offroad += info["offroad"]
                     total += 1
                     break
@@ -131,6 +142,7 @@ def subgoal_reaching(
         "short_lane_changes_reached": short_reached,
         "oracle_reach": feasible / max(counted, 1),
         "short_lane_changes_feasible": short_feasible,
+        **{f"cut_short_{end}": n for end, n in cut_short.items()},
     }
 
 
@@ -174,6 +186,10 @@ def main() -> None:
     print(
         f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "
         f"{args.hold_steps} steps (default traffic)"
+    )
+    print(
+        f"  left out, cut short before reached by a collision {reaching['cut_short_crashed']}, the time "
+        f"limit {reaching['cut_short_timeout']}, the task's exit {reaching['cut_short_is_success']}"
     )
     print(
         f"  of them {reaching['short_lane_changes']} lane changes (>= {LANE_CHANGE_OFFSET:.0f} m to the "
