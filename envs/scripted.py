@@ -65,8 +65,9 @@ class SearchPlanner:
     change's S-curve: a turn, the opposite turn, then 'keep direction' or 'slow down'. A sequence counts
     only up to its first step whose box leaves the drivable area of the observation's BEV. It takes the
     first action of the sequence that reaches the goal (within ``radius_share`` of the reach radius and
-    ``heading_share`` of the heading tolerance) soonest, the faster of equally soon ones, or, if none
-    does, of the one that ends on the goal's line, heading its way, at speed. A goal beside or behind
+    ``heading_share`` of the heading tolerance, or, if none does, within the full radius and tolerance)
+    soonest, the faster of equally soon ones, or, if none does, of the one that ends on the goal's
+    line, heading its way, at speed. A goal beside or behind
     the ego, or already reached, means braking. It never takes a masked action (unless all are masked).
     Like :class:`ScriptedPlanner` it
     sees the observation only and ignores traffic (the decision-maker's job); it reaches more subgoals
@@ -139,6 +140,7 @@ class SearchPlanner:
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray | None = None) -> int:
         """The action for one step."""
+        cfg = self.config
         gx, gy, gh = (float(v) for v in obs["goal"][:3])
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
@@ -153,22 +155,26 @@ class SearchPlanner:
         # Only what is driven before the first step off the road counts.
         before_off = np.cumprod(on_road, axis=1).astype(bool)
         hit = (miss <= self.radius) & (turn <= self.heading) & before_off
+        # Where no sequence arrives with the margin, one that arrives within the env's own tolerance
+        # (short lane changes, mostly) still beats ending on the goal's line.
+        loose = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
+        first = self.sequences[:, 0]
+        usable = allowed[first] | ~allowed.any()
+        if not (hit & usable[:, None]).any():
+            hit = loose
         reached = hit.any(1)
         # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
         lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
         steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
         speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
-        slack = 1.0 - speed_after / self.config.cruise_speed
+        slack = 1.0 - speed_after / cfg.cruise_speed
         line = lateral + 3.0 * turn[:, -1] + 4.0 * slack[:, -1] + 100.0 * ~before_off[:, -1]
         # Soonest arrival; between equally soon ones, the faster (it needs less to go on).
         arrival = hit.argmax(1)
         cost = np.where(
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
-        first = self.sequences[:, 0]
-        if not allowed.any():
-            return int(first[np.argmin(cost)])
-        return int(first[np.argmin(np.where(allowed[first], cost, np.inf))])
+        return int(first[np.argmin(np.where(usable, cost, np.inf))])
 
 
 class FarthestSubgoalDecider:
