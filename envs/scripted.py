@@ -156,11 +156,10 @@ class SearchPlanner:
         hit = (miss <= self.radius) & (turn <= self.heading) & before_off
         # Where no sequence arrives with the margin, one that arrives within the env's own tolerance
         # (short lane changes, mostly) still beats ending on the goal's line.
-        loose = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
         first = self.sequences[:, 0]
         usable = allowed[first] | ~allowed.any()
         if not (hit & usable[:, None]).any():
-            hit = loose
+            hit = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
         reached = hit.any(1)
         # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
         lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))

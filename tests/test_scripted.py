@@ -126,18 +126,17 @@ def test_search_planner_never_takes_a_masked_action():
 
 def drive_search_planner(goal, speed, steps=30):
     """Steps until the search planner, driving the ego's kinematics from the origin, reaches ``goal``
-    within the env's reach radius and heading tolerance (None if it does not within ``steps``)."""
+    as the env counts it (None if it does not within ``steps``)."""
     from gccp_envs.action import EgoMotion, EgoState
+    from gccp_envs.geometry import poses_to_frame
+    from gccp_envs.rewards import goal_errors, goal_reached
 
     config = IntersectionConfig()
-    motion, state = EgoMotion(config), EgoState(0.0, 0.0, 0.0, speed)
-    gx, gy, gh = goal
+    motion, state, goal = EgoMotion(config), EgoState(0.0, 0.0, 0.0, speed), np.asarray(goal)
     for step in range(steps):
-        c, s = np.cos(state.heading), np.sin(state.heading)
-        dx, dy = gx - state.x, gy - state.y
-        local = (c * dx + s * dy, -s * dx + c * dy, float(np.angle(np.exp(1j * (gh - state.heading)))))
-        if np.hypot(dx, dy) <= config.subgoal_reach_radius and abs(local[2]) <= config.subgoal_reach_heading:
+        if goal_reached(config, goal_errors(state, goal)):
             return step
+        local = poses_to_frame(goal, np.array([state.x, state.y]), state.heading)
         state = motion.step(state, SEARCH(planner_obs(local, state.speed)))
     return None
 
