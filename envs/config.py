@@ -97,6 +97,11 @@ class IntersectionConfig:
     """Desired speeds [m/s] of other vehicles, drawn uniformly per vehicle."""
     npc_time_headway: tuple[float, float] = (1.0, 1.6)
     """IDM time headways [s] of other vehicles, drawn uniformly per vehicle."""
+    npc_patience: float | None = 8.0
+    """Seconds another vehicle stands at its stop line before it goes before all vehicles that have not:
+    priority traffic not yet committed stops for it (it can still stop comfortably), committed traffic
+    and a standing ego still hold it back. SUMO's impatience, without which a minor-road car can wait for
+    a gap past the time limit with the ego queued behind it (ours; null: never impatient)."""
     crashed_vehicle_lifetime: float = 3.0
     """Seconds a crashed other vehicle stays on the road before it is removed."""
     max_vehicles: int = 48
@@ -267,6 +272,8 @@ def _validate(config: IntersectionConfig) -> None:
     )
     for name in positive_floats:
         require_positive(name, getattr(config, name))
+    if config.npc_patience is not None:
+        require_positive("npc_patience", config.npc_patience)
     for name in ("spawn_probability", "hold_probability", "hold_continue"):
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:

@@ -9,9 +9,13 @@ the path. Entering the junction follows a commit protocol that keeps crossing tr
   conflicting vehicle with priority would reach the zone before it clears it, and the ego is not
   standing on its path inside the junction;
 - until it commits it stops at the stop line; committed vehicles never yield on conflicts, so every
-  waiting vehicle eventually goes.
+  waiting vehicle eventually goes;
+- a vehicle that has stood at its stop line for ``npc_patience`` seconds goes before every vehicle
+  that has not (SUMO's impatience): priority traffic not yet committed stops at its own stop line, which
+  it can still do comfortably, and the impatient vehicle enters once the committed traffic has cleared.
 
-Priority: the east-west road first, then straight-on and right turns before left turns, then first come.
+Priority: out of patience first, then the east-west road, then straight-on and right turns before left
+turns, then first come.
 All state lives in fixed-capacity numpy arrays, so a step costs a few dozen vectorised operations.
 """
 
@@ -30,6 +34,8 @@ VEHICLE_LENGTH = 5.0
 """Length [m] of every vehicle (highway-env's)."""
 VEHICLE_WIDTH = 2.0
 """Width [m] of every vehicle (highway-env's)."""
+STANDING = 0.5
+"""Below this speed [m/s] a vehicle at its stop line counts as standing there (for its patience)."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,8 @@ class Traffic:
         self.desired_speed = np.ones(m)
         self.headway = np.ones(m)
         self.committed = np.zeros(m, bool)
+        self.waited = np.zeros(m)
+        """Seconds each vehicle has stood at its stop line, not committed."""
         self.crashed = np.zeros(m, bool)
         self.crash_timer = np.zeros(m)
         self.uid = np.full(m, -1, np.int64)
@@ -113,9 +121,16 @@ class Traffic:
             self.pose[idx] = self.layout.paths.pose_at(self.path[idx], self.s[idx])
 
     def priority_key(self, idx: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Sort key of vehicles: lower goes first (priority road, not turning left, first come)."""
+        """Sort key of vehicles: lower goes first (out of patience, priority road, not turning left,
+        first come)."""
         rank = 2 * (~self.layout.path_major[self.path[idx]]) + (self.layout.path_turn[self.path[idx]] == 0)
-        return rank.astype(np.int64) * 10**9 + self.order[idx]
+        rank = rank.astype(np.int64) - 4 * self.impatient(idx)
+        return rank * 10**9 + self.order[idx]
+
+    def impatient(self, idx: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Whether each vehicle has stood at its stop line for ``npc_patience`` seconds."""
+        patience = self.config.npc_patience
+        return np.zeros(len(idx), bool) if patience is None else self.waited[idx] >= patience - 1e-6
 
     # --- spawning ------------------------------------------------------------------------------------
     def spawn(
@@ -149,7 +164,7 @@ class Traffic:
         self.active[slot], self.path[slot], self.s[slot] = True, path, s
         self.speed[slot] = min(start_speed, safe)
         self.committed[slot] = self.crashed[slot] = False
-        self.crash_timer[slot] = 0.0
+        self.crash_timer[slot] = self.waited[slot] = 0.0
         self.uid[slot] = self._next_uid
         self.order[slot] = self._next_uid
         self._next_uid += 1
@@ -336,6 +351,7 @@ class Traffic:
             np.maximum(layout.zone_start[pj, pi] - (self.s[j] + self.length[j] / 2.0)[None, :], 0.0)
             / np.maximum(self.speed[j], 1.0)[None, :]
         )
+        j_eta[:, self.impatient(j)] = 0.0  # it goes as soon as the committed traffic has cleared
         clear_distance = layout.zone_end[pi, pj] + self.length[i][:, None] / 2.0 - self.s[i][:, None]
         v = self.speed[i][:, None]
         clear_time = (
@@ -373,9 +389,10 @@ class Traffic:
         if not len(rows):
             return gaps
         waiting = idx[rows]
-        blocked = self._blocked(waiting, ego)
         v = self.speed[waiting]
         distance = self._distance_to_stop(waiting)
+        self.waited[waiting] += np.where((distance < drv.stop_margin + 1.0) & (v < STANDING), DT, 0.0)
+        blocked = self._blocked(waiting, ego)
         commit_distance = drv.min_gap + v**2 / (2.0 * drv.comfort_decel) + v * DT
         ready = np.flatnonzero(~blocked & (distance <= commit_distance + drv.stop_margin))
         entered: list[int] = []

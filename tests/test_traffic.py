@@ -196,3 +196,56 @@ def test_ego_hit_is_reported(layout):
     assert traffic.detect_crashes(Obstacle(float(x), float(y), float(h), 5.0))
     assert traffic.crashed[slot]
     assert not make_traffic(layout).detect_crashes(Obstacle(float(x), float(y), float(h), 5.0))
+
+
+def _minor_in_major_stream(layout, patience, steps=300, warmup=120):
+    """A minor-road car (path 1) at its stop line while major-road cars (path 5) cross its path every
+    2.5 s, too close together for its gap; returns the traffic, the minor car's slot, its front per step
+    after it appeared and per step the least speed of an uncommitted major car near its stop line."""
+    traffic = Traffic(layout, CFG.replace(npc_patience=patience), np.random.default_rng(0))
+    minor = None
+    fronts, major_stops = [], []
+    for step in range(warmup + steps):
+        if step % 25 == 0:
+            traffic.spawn(5, 0.0, speed=8.0)
+        if step == warmup:  # the stream has reached the junction
+            minor = traffic.spawn(1, layout.stop_s - 8.0, speed=0.0)
+        traffic.step()
+        assert not traffic.detect_crashes()
+        if minor is None:
+            continue
+        idx = traffic.indices
+        major = idx[(traffic.path[idx] == 5) & ~traffic.committed[idx]]
+        near_line = major[traffic.s[major] > layout.stop_s - 10.0]
+        major_stops.append(traffic.speed[near_line].min() if len(near_line) else np.inf)
+        fronts.append(traffic.s[minor] + VEHICLE_LENGTH / 2.0 if traffic.active[minor] else np.inf)
+    return traffic, minor, np.array(fronts), np.array(major_stops)
+
+
+def test_without_patience_a_dense_priority_stream_holds_the_minor_road(layout):
+    traffic, minor, fronts, _ = _minor_in_major_stream(layout, None)
+    assert not traffic.committed[minor]
+    assert np.all(fronts <= layout.stop_s)
+    assert traffic.waited[minor] > 20.0
+    assert not traffic.impatient(np.array([minor]))[0]
+
+
+def test_an_impatient_car_goes_first_and_the_priority_stream_stops_for_it(layout):
+    patience = 8.0
+    traffic, minor, fronts, major_stops = _minor_in_major_stream(layout, patience)
+    entered = int(np.argmax(fronts > layout.stop_s))
+    assert fronts[entered] > layout.stop_s  # it entered ...
+    assert entered * 0.1 > patience  # ... only once out of patience (it stood there from the start) ...
+    assert entered * 0.1 < patience + 10.0  # ... and soon after: committed traffic clears in seconds
+    # A priority car stopped at its own stop line for it (it was not yet committed).
+    assert major_stops.min() < 0.1
+
+
+def test_impatience_outranks_the_priority_road(layout):
+    traffic = make_traffic(layout)
+    minor, major = traffic.spawn(1, 20.0), traffic.spawn(5, 0.0)
+    before = traffic.priority_key(np.array([minor, major]))
+    assert before[1] < before[0]
+    traffic.waited[minor] = CFG.npc_patience
+    after = traffic.priority_key(np.array([minor, major]))
+    assert after[0] < after[1]
