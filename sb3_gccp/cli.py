@@ -363,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     rollout.add_argument("--seed", type=int, default=0, help="first traffic seed")
     rollout.add_argument("--json", help="also write the table and every episode to this JSON file")
     rollout.add_argument("--gif", help="also write a GIF of the first task's first episode")
+    rollout.add_argument("--no-progress", action="store_true", help="no progress bar")
     world_options(rollout)
     rollout.set_defaults(func=_rollout)
 
