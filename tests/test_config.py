@@ -68,6 +68,8 @@ def test_replace_validates():
         ({"history_length": True}, "history_length must be a positive integer"),
         ({"lane_width": 0.0}, "lane_width must be a positive number"),
         ({"cruise_speed": -1.0}, "cruise_speed must be a positive number"),
+        ({"npc_patience": 0.0}, "npc_patience must be a positive number"),
+        ({"npc_patience": "8"}, "npc_patience must be a positive number"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
         ({"spawn_probability": -0.1}, "spawn_probability"),
         ({"ego_start_speed": (8.0, 4.0)}, "ego_start_speed"),

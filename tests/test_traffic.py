@@ -222,6 +222,10 @@ def _minor_in_major_stream(layout, patience, steps=300, warmup=120):
     return traffic, minor, np.array(fronts), np.array(major_stops)
 
 
+def test_null_patience_is_allowed():
+    assert IntersectionConfig(npc_patience=None).npc_patience is None
+
+
 def test_without_patience_a_dense_priority_stream_holds_the_minor_road(layout):
     traffic, minor, fronts, _ = _minor_in_major_stream(layout, None)
     assert not traffic.committed[minor]
@@ -235,10 +239,11 @@ def test_an_impatient_car_goes_first_and_the_priority_stream_stops_for_it(layout
     traffic, minor, fronts, major_stops = _minor_in_major_stream(layout, patience)
     entered = int(np.argmax(fronts > layout.stop_s))
     assert fronts[entered] > layout.stop_s  # it entered ...
-    assert entered * 0.1 > patience  # ... only once out of patience (it stood there from the start) ...
+    assert entered * 0.1 > patience  # ... only once out of patience ...
     assert entered * 0.1 < patience + 10.0  # ... and soon after: committed traffic clears in seconds
     # A priority car stopped at its own stop line for it (it was not yet committed).
     assert major_stops.min() < 0.1
+    assert traffic.waited[minor] >= patience and traffic.impatient(np.array([minor]))[0]
 
 
 def test_impatience_outranks_the_priority_road(layout):
