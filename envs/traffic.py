@@ -36,6 +36,9 @@ VEHICLE_WIDTH = 2.0
 """Width [m] of every vehicle (highway-env's)."""
 STANDING = 0.5
 """Below this speed [m/s] a vehicle at its stop line counts as standing there (for its patience)."""
+AT_THE_LINE = 2.0
+"""A vehicle whose front is within this distance [m] of its stop line is at the line (for its patience;
+a yielding vehicle stops ``DriverModel.stop_margin`` = 1 m before it)."""
 
 
 @dataclass(frozen=True)
@@ -391,7 +394,7 @@ class Traffic:
         waiting = idx[rows]
         v = self.speed[waiting]
         distance = self._distance_to_stop(waiting)
-        self.waited[waiting] += np.where((distance < drv.stop_margin + 1.0) & (v < STANDING), DT, 0.0)
+        self.waited[waiting] += np.where((distance < AT_THE_LINE) & (v < STANDING), DT, 0.0)
         blocked = self._blocked(waiting, ego)
         commit_distance = drv.min_gap + v**2 / (2.0 * drv.comfort_decel) + v * DT
         ready = np.flatnonzero(~blocked & (distance <= commit_distance + drv.stop_margin))
