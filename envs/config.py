@@ -118,6 +118,10 @@ class IntersectionConfig:
     """Curvature [1/m] of 'slowly turn left/right' (a left turn needs 1/15)."""
     quick_turn_curvature: float = 1.0 / 6.0
     """Curvature [1/m] of 'quickly turn left/right' (a right turn needs 1/7)."""
+    scripted_stop_aligned: bool = False
+    """Whether the scripted planner, stopping on a goal whose heading differs from its own, first turns
+    towards it (a turn holds speed, so it brakes a step later) rather than braking askew across lanes.
+    Tried in session 17 and not adopted: fewer stand-offs, more collisions (README)."""
     mask_lookahead: int = 5
     """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
     and some action held for the remaining steps keeps it there (1: the next step only)."""
@@ -274,6 +278,9 @@ def _validate(config: IntersectionConfig) -> None:
         require_positive(name, getattr(config, name))
     if config.npc_patience is not None:
         require_positive("npc_patience", config.npc_patience)
+    for name in ("scripted_stop_aligned", "r_subgoal_needs_travel"):
+        if not isinstance(getattr(config, name), bool):
+            raise ValueError(f"{name} must be true or false, got {getattr(config, name)!r}")
     for name in ("spawn_probability", "hold_probability", "hold_continue"):
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:

@@ -11,6 +11,9 @@ import numpy as np
 from gccp_envs.action import EgoAction, EgoMotion
 from gccp_envs.config import DT, IntersectionConfig
 
+ALIGNED = 0.05
+"""Heading error [rad] a turn must remove before the stopping scripted planner takes it."""
+
 
 class ScriptedPlanner:
     """Pure pursuit towards the goal point, braking to stop on it.
@@ -41,7 +44,14 @@ class ScriptedPlanner:
             target_speed = 0.0
         curvature = 2.0 * y / max(distance**2, 1e-6)
         ranked = sorted(self._turns, key=lambda a: abs(self._turns[a] - curvature))
-        if target_speed == 0.0 or speed > target_speed + 0.2:
+        if target_speed == 0.0 and cfg.scripted_stop_aligned and speed > 1.0:
+            # Stopping: a turn that brings the heading closer to the goal's first, then braking.
+            misalignment = float(obs["goal"][2])
+            turns = {a: misalignment - k * speed * DT for a, k in self._turns.items()}
+            best = min(turns, key=lambda a: abs(turns[a]))
+            first = [best] if abs(turns[best]) < abs(misalignment) - ALIGNED else []
+            ranked = [*first, EgoAction.SLOW_DOWN, *ranked]
+        elif target_speed == 0.0 or speed > target_speed + 0.2:
             ranked = [EgoAction.SLOW_DOWN, *ranked]
         elif ranked[0] != EgoAction.KEEP_DIRECTION and speed < 1.0 and target_speed > 0.0:
             ranked = [EgoAction.KEEP_DIRECTION, *ranked]  # turning needs speed

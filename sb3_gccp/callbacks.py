@@ -86,6 +86,9 @@ class GCCPSettings:
     mask_extrapolate_steps: int = 0
     """Steps checked beyond the predicted T_f, every vehicle keeping its last predicted velocity
     (paper: 0, a 1 s check; see the README for why a longer one helps at our speeds)."""
+    mask_ego_deceleration: float | None = None
+    """In those extra steps the ego brakes to a stop at this deceleration [m/s^2] (ours: the world's
+    4); null: it goes on at its last predicted velocity like the neighbours."""
 
     def __post_init__(self) -> None:
         if self.predictor not in PREDICTORS:
@@ -94,6 +97,8 @@ class GCCPSettings:
             require_int(f"gccp.{name}", getattr(self, name))
         if not isinstance(self.mask_margin, (int, float)) or self.mask_margin < 0:
             raise ValueError(f"gccp.mask_margin must be a non-negative number, got {self.mask_margin!r}")
+        if self.mask_ego_deceleration is not None:
+            require_positive("gccp.mask_ego_deceleration", self.mask_ego_deceleration)
         for name in ("mask_after_episodes", "predictor_steps_per_episode", "mask_extrapolate_steps"):
             require_int(f"gccp.{name}", getattr(self, name), minimum=0)
         if self.planner_episodes is not None and (
@@ -120,7 +125,12 @@ class GCCPSettings:
 
     def make_mask(self, predictor: nn.Module) -> GCCPMask:
         """The GCCP mask function of these settings around ``predictor``."""
-        return GCCPMask(predictor, CollisionChecker(margin=self.mask_margin), self.mask_extrapolate_steps)
+        return GCCPMask(
+            predictor,
+            CollisionChecker(margin=self.mask_margin),
+            self.mask_extrapolate_steps,
+            self.mask_ego_deceleration,
+        )
 
     def make_predictor(self) -> nn.Module | None:
         """A fresh predictor of this variant (``None`` without GCCP)."""

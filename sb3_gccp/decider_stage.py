@@ -141,6 +141,7 @@ def train_decider(request: StageRequest) -> Path:
         "predictor_weights": "predictor.pt" if gccp.predictor in LEARNED else None,
         "mask_margin": gccp.mask_margin,
         "mask_extrapolate_steps": gccp.mask_extrapolate_steps,
+        "mask_ego_deceleration": gccp.mask_ego_deceleration,
         "world": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(world).items()},
     }
     (run_dir / HIERARCHY_FILE).write_text(yaml.safe_dump(hierarchy, sort_keys=False))

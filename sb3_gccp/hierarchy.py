@@ -8,6 +8,7 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     predictor_weights: predictor.pt
     mask_margin: 0.0              # GCCP collision check: box margin [m] and steps beyond T_f
     mask_extrapolate_steps: 0     #   (both optional, 0 if absent)
+    mask_ego_deceleration: null   # the ego brakes in those steps [m/s^2] (optional; null: goes on)
     world: {...}                  # the world config the decider was trained on
 """
 
@@ -43,6 +44,7 @@ class Hierarchy:
     world: Mapping[str, Any] = field(default_factory=dict)
     mask_margin: float = 0.0
     mask_extrapolate_steps: int = 0
+    mask_ego_deceleration: float | None = None
 
     def make_env(
         self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
@@ -61,10 +63,11 @@ class Hierarchy:
         if self.predictor == "none":
             return None
         checker = CollisionChecker(margin=self.mask_margin)
+        extrapolation = (self.mask_extrapolate_steps, self.mask_ego_deceleration)
         if self.predictor == "cv":
-            return GCCPMask(ConstantVelocityPredictor(), checker, self.mask_extrapolate_steps)
+            return GCCPMask(ConstantVelocityPredictor(), checker, *extrapolation)
         assert self.predictor_weights is not None
-        return GCCPMask(load_predictor(self.predictor_weights), checker, self.mask_extrapolate_steps)
+        return GCCPMask(load_predictor(self.predictor_weights), checker, *extrapolation)
 
     def decider_policy(self, deterministic: bool = True) -> FrozenPolicy:
         """The decision-maker: its most likely subgoal, or (``deterministic=False``) one sampled."""
@@ -104,4 +107,5 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
         dict(spec.get("world") or {}),
         float(spec.get("mask_margin", 0.0)),
         int(spec.get("mask_extrapolate_steps", 0)),
+        None if spec.get("mask_ego_deceleration") is None else float(spec["mask_ego_deceleration"]),
     )

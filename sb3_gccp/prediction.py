@@ -235,16 +235,25 @@ class GCCPMask:
     :param checker: the collision checker (default :class:`~sb3_gccp.collision.CollisionChecker`)
     :param extrapolate_steps: check this many 0.1 s steps beyond the predicted T_f as well, every
         vehicle going on at the speed and heading of its last predicted step (0: the paper)
+    :param ego_deceleration: in those steps the ego brakes at this deceleration [m/s^2] instead, to a
+        stop (it can always brake after its subgoal); ``None``: it goes on like the others
     """
 
     def __init__(
-        self, predictor: nn.Module, checker: CollisionChecker | None = None, extrapolate_steps: int = 0
+        self,
+        predictor: nn.Module,
+        checker: CollisionChecker | None = None,
+        extrapolate_steps: int = 0,
+        ego_deceleration: float | None = None,
     ) -> None:
         if extrapolate_steps < 0:
             raise ValueError(f"extrapolate_steps must be non-negative, got {extrapolate_steps!r}")
+        if ego_deceleration is not None and ego_deceleration <= 0:
+            raise ValueError(f"ego_deceleration must be positive or None, got {ego_deceleration!r}")
         self.predictor = predictor.eval()
         self.checker = checker or CollisionChecker()
         self.extrapolate_steps = extrapolate_steps
+        self.ego_deceleration = ego_deceleration
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
@@ -274,7 +283,10 @@ class GCCPMask:
         present = self.present(obs)
         if not present.any():  # nothing to collide with: skip the prediction
             return np.ones(len(obs["subgoals"]), bool)
-        future = extrapolate(self.predict(obs), self.extrapolate_steps)
+        predicted = self.predict(obs)
+        future = extrapolate(predicted, self.extrapolate_steps)
+        if self.ego_deceleration is not None and self.extrapolate_steps:
+            future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
         return self.checker.action_mask(future[:, 0], future[:, 1:], present)
 
 
@@ -295,6 +307,31 @@ def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
     xy = last[..., :2] + k * step
     heading = np.broadcast_to(last[..., 2:], (*last.shape[:-2], steps, 1))
     return np.concatenate([future, np.concatenate([xy, heading], -1)], axis=-2)
+
+
+def extrapolate_braking(future: np.ndarray, steps: int, deceleration: float) -> np.ndarray:
+    """Predicted poses followed by ``steps`` more of braking to a stop: from the speed of the last
+    predicted step (as in :func:`extrapolate`), along its direction, at ``deceleration``.
+
+    :param future: (..., T_f, 3) poses (x, y, heading)
+    :param steps: extra steps
+    :param deceleration: [m/s^2]
+    :return: (..., T_f + steps, 3)
+    """
+    future = np.asarray(future)
+    if steps == 0:
+        return future
+    last = future[..., -1:, :]
+    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
+    step = last[..., :2] - previous[..., :2]
+    length = np.hypot(step[..., :1], step[..., 1:])  # (..., 1, 1)
+    speed = length / DT
+    t = np.arange(1, steps + 1, dtype=np.float64)[:, None] * DT
+    travelled = np.minimum(speed * t - 0.5 * deceleration * t**2, speed**2 / (2.0 * deceleration))
+    direction = step / np.maximum(length, 1e-9)
+    xy = last[..., :2] + travelled * direction
+    heading = np.broadcast_to(last[..., 2:], (*last.shape[:-2], steps, 1))
+    return np.concatenate([future, np.concatenate([xy, heading], -1).astype(future.dtype)], axis=-2)
 
 
 def save_predictor(predictor: TrajectoryPredictor, path: str | Path) -> None:

@@ -70,6 +70,8 @@ def test_replace_validates():
         ({"cruise_speed": -1.0}, "cruise_speed must be a positive number"),
         ({"npc_patience": 0.0}, "npc_patience must be a positive number"),
         ({"npc_patience": "8"}, "npc_patience must be a positive number"),
+        ({"scripted_stop_aligned": "yes"}, "scripted_stop_aligned must be true or false"),
+        ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
         ({"spawn_probability": -0.1}, "spawn_probability"),
         ({"ego_start_speed": (8.0, 4.0)}, "ego_start_speed"),

@@ -199,3 +199,8 @@ def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
     (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
     longer = load_hierarchy(tmp_path).mask_fn()
     assert longer is not None and longer.checker.margin == 1.0 and longer.extrapolate_steps == 10
+    assert longer.ego_deceleration is None
+    spec.update(mask_ego_deceleration=4.0)
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    braking = load_hierarchy(tmp_path).mask_fn()
+    assert braking is not None and braking.ego_deceleration == 4.0

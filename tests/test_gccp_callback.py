@@ -147,6 +147,7 @@ def test_pushed_weights_change_the_workers_masks():
             {"mask_extrapolate_steps": 1.5},
             "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
         ),
+        ({"mask_ego_deceleration": 0}, "gccp.mask_ego_deceleration must be a positive number, got 0"),
         (
             {"predictor_kwargs": {"decoder_width": 3}},
             "unknown predictor config key(s): 'decoder_width' (did you mean 'decoder_hidden'?)",
@@ -164,6 +165,9 @@ def test_settings_build_the_mask_with_their_margin_and_extrapolation():
     assert mask.extrapolate_steps == 5
     paper = GCCPSettings().make_mask(ConstantVelocityPredictor())
     assert paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
+    assert paper.ego_deceleration is None and mask.ego_deceleration is None
+    braking = GCCPSettings(mask_extrapolate_steps=5, mask_ego_deceleration=4.0)
+    assert braking.make_mask(ConstantVelocityPredictor()).ego_deceleration == 4.0
 
 
 def test_rolling_rate_and_the_episode_where_success_passes_70_percent():

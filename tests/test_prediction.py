@@ -17,6 +17,7 @@ from sb3_gccp.prediction import (
     PredictorConfig,
     TrajectoryPredictor,
     extrapolate,
+    extrapolate_braking,
     load_predictor,
     save_predictor,
 )
@@ -223,6 +224,33 @@ def test_extrapolate_continues_the_last_predicted_step():
     assert extrapolate(future, 0) is future
     with pytest.raises(ValueError, match="extrapolate_steps"):
         GCCPMask(ConstantVelocityPredictor(), extrapolate_steps=-1)
+
+
+def test_extrapolate_braking_stops_the_ego_at_its_deceleration():
+    future = np.zeros((2, 4, 3), np.float32)
+    future[..., 0] = np.arange(1, 5) * 0.8  # 8 m/s along x
+    future[1, :, :2] = 0.0  # standing
+    longer = extrapolate_braking(future, 30, deceleration=4.0)
+    assert longer.shape == (2, 34, 3)
+    np.testing.assert_array_equal(longer[:, :4], future)
+    # 8 m/s braking at 4 m/s^2: 8 m to a stop after 2 s, then standing.
+    np.testing.assert_allclose(longer[0, 4:, 0] - 3.2, np.minimum(8 * T - 2 * T**2, 8.0), atol=1e-5)
+    assert np.all(longer[1, :, :2] == 0.0)
+    assert extrapolate_braking(future, 0, 4.0) is future
+
+
+T = DT * np.arange(1, 31)
+
+
+def test_mask_lets_a_standing_ego_brake_instead_of_going_on():
+    # The ego creeps at 1 m/s towards a car standing 6.6 m ahead (boxes 1.6 m apart): going on at
+    # 1 m/s for 2 s meets it, braking from 1 m/s stops after 0.125 m.
+    creep = scene([(0.0, 0.0, 0.0, 1.0), (6.6, 0.0, np.pi, 0.0)])
+    hold = GCCPMask(ConstantVelocityPredictor(), extrapolate_steps=10)
+    brake = GCCPMask(ConstantVelocityPredictor(), extrapolate_steps=10, ego_deceleration=4.0)
+    assert not hold(creep).any() and brake(creep).all()
+    with pytest.raises(ValueError, match="ego_deceleration"):
+        GCCPMask(ConstantVelocityPredictor(), ego_deceleration=0.0)
 
 
 def test_mask_extrapolation_and_margin_see_conflicts_the_paper_check_misses():

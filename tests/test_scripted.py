@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gymnasium as gym
 import numpy as np
 import pytest
-from helpers import path_pose, place_ego_on_path
+from helpers import path_pose, place_ego, place_ego_on_path
 
 from gccp_envs.action import EgoAction
 from gccp_envs.config import IntersectionConfig
@@ -68,6 +70,41 @@ def test_scripted_planner_reaches_and_stops_on_a_goal():
 @pytest.mark.parametrize("goal", [(0.3, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.8, 0.0, 0.0)])
 def test_scripted_planner_holds_still_on_its_goal(goal):
     assert PLANNER(planner_obs(goal, 0.0)) == EgoAction.SLOW_DOWN
+
+
+@pytest.mark.parametrize(
+    ("goal", "speed", "action"),
+    [
+        ((-1.0, 0.0, 0.25), 8.0, EgoAction.QUICKLY_TURN_RIGHT),  # 0.133 rad per step, to 0.12
+        ((-1.0, 0.0, 0.09), 8.0, EgoAction.SLOWLY_TURN_RIGHT),  # 0.067 rad per step, to 0.02
+        ((-1.0, 0.0, -0.25), 8.0, EgoAction.QUICKLY_TURN_LEFT),
+        ((-1.0, 0.0, 0.04), 8.0, EgoAction.SLOW_DOWN),  # aligned enough
+        ((-1.0, 0.0, 0.25), 0.8, EgoAction.SLOW_DOWN),  # too slow to turn: stop
+    ],
+)
+def test_scripted_planner_turns_into_line_before_it_stops(goal, speed, action):
+    aligned = ScriptedPlanner(IntersectionConfig(scripted_stop_aligned=True))
+    assert aligned(planner_obs(goal, speed)) == action
+    assert PLANNER(planner_obs(goal, speed)) == EgoAction.SLOW_DOWN  # the default brakes at once
+
+
+def test_scripted_planner_stops_in_line_with_its_lane():
+    # Left of its lane and heading 0.2 rad across it at 8 m/s, told to hold on its lane.
+    config = IntersectionConfig(spawn_probability=0.0, task="straight", decision_period=50)
+    headings = {}
+    for aligned in (True, False):
+        env = gym.make("GCCPPlanner-v0", config=replace(config, scripted_stop_aligned=aligned)).unwrapped
+        env.reset(seed=0)
+        lane = path_pose(env.world.layout, 2, 30.0)
+        place_ego(env.world, lane[0], lane[1], lane[2] - 0.2, 8.0)
+        env._subgoal, env._holding = lane, True
+        obs = env._observe()
+        planner = ScriptedPlanner(env.config)
+        for _ in range(30):
+            obs, *_ = env.step(planner(obs, env.action_masks()))
+        assert env.world.ego.speed == 0.0
+        headings[aligned] = abs(float(obs["goal"][2]))
+    assert headings[True] < 0.05 < 0.15 < headings[False]
 
 
 def test_farthest_subgoal_decider():
