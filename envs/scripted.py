@@ -16,7 +16,8 @@ ALIGNED = 0.05
 
 
 class ScriptedPlanner:
-    """Pure pursuit towards the goal point, braking to stop on it.
+    """Pure pursuit towards the goal point, braking to stop on it (with ``scripted_stop_aligned``, a
+    turn towards the goal's heading first where one step of it removes more than ``ALIGNED``).
 
     Call it with a planner observation (``goal`` in the ego frame) and the action mask.
     """

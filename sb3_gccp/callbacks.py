@@ -87,8 +87,8 @@ class GCCPSettings:
     """Steps checked beyond the predicted T_f, every vehicle keeping its last predicted velocity
     (paper: 0, a 1 s check; see the README for why a longer one helps at our speeds)."""
     mask_ego_deceleration: float | None = None
-    """In those extra steps the ego brakes to a stop at this deceleration [m/s^2] (ours: the world's
-    4); null: it goes on at its last predicted velocity like the neighbours."""
+    """In those extra steps the ego brakes to a stop at this deceleration [m/s^2]; null (the shipped
+    mask): it goes on at its last predicted velocity like the neighbours. 4 was tried, not adopted."""
 
     def __post_init__(self) -> None:
         if self.predictor not in PREDICTORS:
