@@ -300,13 +300,9 @@ def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
     """
     if steps == 0:
         return future
-    last = future[..., -1:, :]
-    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
-    step = last[..., :2] - previous[..., :2]
+    last, step = _last_step(future)
     k = np.arange(1, steps + 1, dtype=future.dtype)[:, None]
-    xy = last[..., :2] + k * step
-    heading = np.broadcast_to(last[..., 2:], (*last.shape[:-2], steps, 1))
-    return np.concatenate([future, np.concatenate([xy, heading], -1)], axis=-2)
+    return _append(future, last, last[..., :2] + k * step)
 
 
 def extrapolate_braking(future: np.ndarray, steps: int, deceleration: float) -> np.ndarray:
@@ -318,19 +314,27 @@ def extrapolate_braking(future: np.ndarray, steps: int, deceleration: float) -> 
     :param deceleration: [m/s^2]
     :return: (..., T_f + steps, 3)
     """
-    future = np.asarray(future)
     if steps == 0:
         return future
-    last = future[..., -1:, :]
-    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
-    step = last[..., :2] - previous[..., :2]
+    last, step = _last_step(future)
     length = np.hypot(step[..., :1], step[..., 1:])  # (..., 1, 1)
     speed = length / DT
     t = np.arange(1, steps + 1, dtype=np.float64)[:, None] * DT
     travelled = np.minimum(speed * t - 0.5 * deceleration * t**2, speed**2 / (2.0 * deceleration))
-    direction = step / np.maximum(length, 1e-9)
-    xy = last[..., :2] + travelled * direction
-    heading = np.broadcast_to(last[..., 2:], (*last.shape[:-2], steps, 1))
+    return _append(future, last, last[..., :2] + travelled * step / np.maximum(length, 1e-9))
+
+
+def _last_step(future: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The last predicted pose (..., 1, 3) and its displacement (..., 1, 2) from the one before (from the
+    origin when T_f is 1)."""
+    last = future[..., -1:, :]
+    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
+    return last, last[..., :2] - previous[..., :2]
+
+
+def _append(future: np.ndarray, last: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``future`` followed by the positions ``xy`` (..., steps, 2), all at the heading of ``last``."""
+    heading = np.broadcast_to(last[..., 2:], (*xy.shape[:-1], 1))
     return np.concatenate([future, np.concatenate([xy, heading], -1).astype(future.dtype)], axis=-2)
 
 
