@@ -204,11 +204,19 @@ def _evaluation_target(args: argparse.Namespace) -> tuple[Any, Any, str]:
     if (folder / BASELINE_FILE).is_file():
         if args.stochastic:
             raise CLIError("--stochastic: baselines are evaluated with their most likely action only")
+        if args.mask:
+            raise CLIError("--mask: baselines have no GCCP check")
         env, policy, name = load_baseline(folder, overrides)
         return env, policy, f"baseline {name} {args.model}"
-    hierarchy = load_hierarchy(args.model)
+    mask = parse_assignments(args.mask, "--mask")
+    hierarchy = load_hierarchy(args.model, mask)
     decider = hierarchy.decider_policy(deterministic=not args.stochastic)
-    return hierarchy.make_env(overrides), decider, f"hierarchy {args.model} (GCCP: {hierarchy.predictor})"
+    check = "".join(f", {key}={value}" for key, value in mask.items())
+    return (
+        hierarchy.make_env(overrides),
+        decider,
+        f"hierarchy {args.model} (GCCP: {hierarchy.predictor}{check})",
+    )
 
 
 def _export(args: argparse.Namespace) -> None:
@@ -234,7 +242,7 @@ def _video(args: argparse.Namespace) -> None:
         raise CLIError("--fps must be positive")
     try:
         check_video_path(args.out)
-        hierarchy = load_hierarchy(args.model)
+        hierarchy = load_hierarchy(args.model, parse_assignments(args.mask, "--mask"))
         env = hierarchy.make_env(parse_assignments(args.set))
         decider = hierarchy.decider_policy()
     except (ValueError, TypeError, OSError) as err:
@@ -348,6 +356,18 @@ def add_world_overrides(parser: argparse.ArgumentParser | argparse._ArgumentGrou
     )
 
 
+def add_mask_overrides(parser: argparse.ArgumentParser) -> None:
+    """``--mask KEY=VALUE`` (repeatable): GCCP check settings replacing a trained hierarchy's."""
+    parser.add_argument(
+        "--mask",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a GCCP check setting of hierarchy.yml (repeatable): mask_margin, "
+        "mask_extrapolate_steps, mask_ego_deceleration",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``sb3_gccp``."""
     parser = argparse.ArgumentParser(prog="sb3_gccp", description=__doc__.splitlines()[0])
@@ -435,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_world_overrides(evaluate)
+    add_mask_overrides(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
     video = sub.add_parser("video", help="write a GIF or MP4 of one episode of a trained hierarchy")
@@ -449,6 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     video.add_argument("--fps", type=float, default=10.0, help="frames per second (10: real time)")
     add_world_overrides(video)
+    add_mask_overrides(video)
     video.set_defaults(func=_video)
 
     reproduce = sub.add_parser(

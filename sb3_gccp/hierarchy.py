@@ -74,10 +74,36 @@ class Hierarchy:
         return FrozenPolicy(self.decider, deterministic=deterministic)
 
 
-def load_hierarchy(path: str | Path) -> Hierarchy:
+MASK_KEYS = ("mask_margin", "mask_extrapolate_steps", "mask_ego_deceleration")
+"""The keys of ``hierarchy.yml`` that set the GCCP collision check (``load_hierarchy``'s ``mask``)."""
+
+
+def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, float | None]:
+    """``mask_margin``, ``mask_extrapolate_steps`` and ``mask_ego_deceleration`` of a hierarchy spec.
+
+    :raises ValueError: one line naming the key whose value is not of its kind
+    """
+    margin, steps = spec.get("mask_margin", 0.0), spec.get("mask_extrapolate_steps", 0)
+    deceleration = spec.get("mask_ego_deceleration")
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
+        raise ValueError(f"{where}: mask_margin must be a non-negative number [m], got {margin!r}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+        raise ValueError(f"{where}: mask_extrapolate_steps must be a non-negative integer, got {steps!r}")
+    if deceleration is not None and (
+        isinstance(deceleration, bool) or not isinstance(deceleration, (int, float)) or deceleration <= 0
+    ):
+        raise ValueError(
+            f"{where}: mask_ego_deceleration must be a positive number [m/s^2] or null, got {deceleration!r}"
+        )
+    return float(margin), steps, None if deceleration is None else float(deceleration)
+
+
+def load_hierarchy(path: str | Path, mask: Mapping[str, Any] | None = None) -> Hierarchy:
     """Read a hierarchy from a run folder, ``pretrained/``, or a decider ``.zip`` inside one.
 
-    :raises ValueError: with a one-line reason when something is missing
+    :param mask: GCCP check settings (keys of ``MASK_KEYS``) replacing those of ``hierarchy.yml``, for
+        example ``{"mask_margin": 0.5}`` to evaluate the trained decider under another check
+    :raises ValueError: with a one-line reason when something is missing or a setting is bad
     """
     path = Path(path)
     if not path.exists():
@@ -92,6 +118,14 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
     predictor = str(spec.get("predictor", "none"))
     if predictor not in PREDICTORS:
         raise ValueError(f"{spec_file}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
+    unknown = sorted(set(mask or {}) - set(MASK_KEYS))
+    if unknown:
+        raise ValueError(f"unknown GCCP check key(s) {', '.join(unknown)}: expected {', '.join(MASK_KEYS)}")
+    if mask and predictor == "none":
+        raise ValueError(f"{folder} has no GCCP module (predictor: none): there is no check to set")
+    settings = _mask_settings(spec, str(spec_file))
+    if mask:
+        settings = _mask_settings({**spec, **mask}, "GCCP check")
     decider = path if path.is_file() else folder / str(spec.get("decider", "decider.zip"))
     name = str(spec.get("planner", "planner.zip"))
     planner = None if name == SCRIPTED else folder / name
@@ -105,7 +139,5 @@ def load_hierarchy(path: str | Path) -> Hierarchy:
         predictor,
         weights,
         dict(spec.get("world") or {}),
-        float(spec.get("mask_margin", 0.0)),
-        int(spec.get("mask_extrapolate_steps", 0)),
-        None if spec.get("mask_ego_deceleration") is None else float(spec["mask_ego_deceleration"]),
+        *settings,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -20,3 +21,28 @@ def test_rollout_writes_its_table(tmp_path, capsys, progress):
     (episode,) = written["episodes"]
     assert (episode["task"], episode["seed"], episode["steps"]) == ("right", 0, 8)  # 8 s: 8 decisions
     assert episode["timeout"]
+
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
+
+
+def test_evaluate_runs_the_shipped_hierarchy_under_another_gccp_check(capsys):
+    args = ["evaluate", "--model", str(PRETRAINED), "--tasks", "right", "--episodes-per-task", "1"]
+    assert main([*args, "--no-progress", "--mask", "mask_margin=0.5", "--set", "duration=2"]) == 0
+    out = capsys.readouterr().out
+    assert "(GCCP: learned, mask_margin=0.5)" in out and "| right | 1 |" in out
+
+
+@pytest.mark.parametrize(
+    "model, mask, message",
+    [
+        (PRETRAINED, "mask_extrapolate_steps=-1", "mask_extrapolate_steps must be a non-negative integer"),
+        (PRETRAINED, "margin=1", "unknown GCCP check key(s) margin"),
+        (PRETRAINED, "mask_margin", "--mask expects KEY=VALUE"),
+        (PRETRAINED / "baselines" / "dqn", "mask_margin=1", "--mask: baselines have no GCCP check"),
+    ],
+)
+def test_evaluate_rejects_a_bad_mask_setting_in_one_line(capsys, model, mask, message):
+    assert main(["evaluate", "--model", str(model), "--mask", mask]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1

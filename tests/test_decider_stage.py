@@ -204,3 +204,49 @@ def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
     (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
     braking = load_hierarchy(tmp_path).mask_fn()
     assert braking is not None and braking.ego_deceleration == 4.0
+
+
+def _cv_hierarchy(folder: Path, **settings: object) -> None:
+    (folder / "decider.zip").write_bytes(b"not read here")
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv", **settings}
+    (folder / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+
+
+def test_mask_settings_given_at_load_replace_the_hierarchy_files(tmp_path):
+    _cv_hierarchy(tmp_path, mask_margin=1.0, mask_extrapolate_steps=10)
+    hierarchy = load_hierarchy(tmp_path, {"mask_margin": 0.5, "mask_ego_deceleration": 4})
+    mask = hierarchy.mask_fn()
+    assert mask is not None and mask.checker.margin == 0.5 and mask.extrapolate_steps == 10
+    assert mask.ego_deceleration == 4.0
+    assert load_hierarchy(tmp_path, {}).mask_margin == 1.0
+
+
+@pytest.mark.parametrize(
+    "settings, message",
+    [
+        ({"mask_margni": 1.0}, "unknown GCCP check key(s) mask_margni"),
+        ({"mask_margin": -1.0}, "mask_margin must be a non-negative number"),
+        ({"mask_margin": "wide"}, "mask_margin must be a non-negative number"),
+        ({"mask_extrapolate_steps": 2.5}, "mask_extrapolate_steps must be a non-negative integer"),
+        ({"mask_extrapolate_steps": True}, "mask_extrapolate_steps must be a non-negative integer"),
+        ({"mask_ego_deceleration": 0}, "mask_ego_deceleration must be a positive number"),
+    ],
+)
+def test_bad_mask_settings_are_rejected_in_one_line(tmp_path, settings, message):
+    _cv_hierarchy(tmp_path)
+    with pytest.raises(ValueError, match=r"^GCCP check: |^unknown") as given:
+        load_hierarchy(tmp_path, settings)
+    assert message in str(given.value) and "\n" not in str(given.value)
+    if "mask_margni" not in settings:  # the same value written in the file names the file
+        _cv_hierarchy(tmp_path, **settings)
+        with pytest.raises(ValueError, match="hierarchy.yml: " + message.split()[0]):
+            load_hierarchy(tmp_path)
+
+
+def test_mask_settings_need_a_gccp_module(tmp_path):
+    (tmp_path / "decider.zip").write_bytes(b"not read here")
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "none"}
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    assert load_hierarchy(tmp_path).mask_fn() is None
+    with pytest.raises(ValueError, match="no GCCP module"):
+        load_hierarchy(tmp_path, {"mask_margin": 0.5})
