@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gccp_envs.config import IntersectionConfig
+from gccp_envs.config import IntersectionConfig, require_int, require_positive
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.callbacks import LEARNED, PREDICTORS
 from sb3_gccp.collision import CollisionChecker
@@ -87,14 +87,9 @@ def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, flo
     deceleration = spec.get("mask_ego_deceleration")
     if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
         raise ValueError(f"{where}: mask_margin must be a non-negative number [m], got {margin!r}")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-        raise ValueError(f"{where}: mask_extrapolate_steps must be a non-negative integer, got {steps!r}")
-    if deceleration is not None and (
-        isinstance(deceleration, bool) or not isinstance(deceleration, (int, float)) or deceleration <= 0
-    ):
-        raise ValueError(
-            f"{where}: mask_ego_deceleration must be a positive number [m/s^2] or null, got {deceleration!r}"
-        )
+    require_int(f"{where}: mask_extrapolate_steps", steps, minimum=0)
+    if deceleration is not None:
+        require_positive(f"{where}: mask_ego_deceleration", deceleration)
     return float(margin), steps, None if deceleration is None else float(deceleration)
 
 
