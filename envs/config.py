@@ -57,6 +57,12 @@ def require_positive(name: str, value: Any) -> None:
         raise ValueError(f"{name} must be a positive number, got {value!r}")
 
 
+def require_non_negative(name: str, value: Any) -> None:
+    """Raise ``ValueError`` unless ``value`` is a number (not a bool) of at least zero."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
+        raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+
+
 @dataclass(frozen=True)
 class IntersectionConfig:
     """Configuration of the intersection world shared by the planner, decider and flat envs.
@@ -122,6 +128,12 @@ class IntersectionConfig:
     """Whether the scripted planner, stopping on a goal whose heading differs from its own, first turns
     towards it (a turn holds speed, so it brakes a step later) rather than braking askew across lanes.
     Tried in session 17 and not adopted: fewer stand-offs, more collisions (README)."""
+    scripted_turn_speed: float = 1.0
+    """Speed [m/s] up to which the scripted planner, going on through a turn, steers with 'keep direction'
+    or a quick turn, whichever curvature is nearer pure pursuit's, so that it accelerates on the straight
+    steps (a turn holds the speed). Below 1 m/s it always accelerates straight first, so the default 1.0
+    adds nothing, and an ego that starts a turn from a stop crawls through it at 1 m/s; the shipped
+    hierarchy runs 4.0 (ours, session 19)."""
     mask_lookahead: int = 5
     """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
     and some action held for the remaining steps keeps it there (1: the next step only)."""
@@ -273,6 +285,7 @@ def _validate(config: IntersectionConfig) -> None:
         "subgoal_reach_radius",
         "subgoal_reach_heading",
         "hold_stop_speed",
+        "scripted_turn_speed",
     )
     for name in positive_floats:
         require_positive(name, getattr(config, name))

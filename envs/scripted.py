@@ -14,6 +14,9 @@ from gccp_envs.config import DT, IntersectionConfig
 ALIGNED = 0.05
 """Heading error [rad] a turn must remove before the stopping scripted planner takes it."""
 
+_ACCELERATING_TURN = (EgoAction.KEEP_DIRECTION, EgoAction.QUICKLY_TURN_LEFT, EgoAction.QUICKLY_TURN_RIGHT)
+"""The actions the scripted planner steers with below ``scripted_turn_speed``."""
+
 
 class ScriptedPlanner:
     """Pure pursuit towards the goal point, braking to stop on it (with ``scripted_stop_aligned``, a
@@ -56,6 +59,10 @@ class ScriptedPlanner:
             ranked = [EgoAction.SLOW_DOWN, *ranked]
         elif ranked[0] != EgoAction.KEEP_DIRECTION and speed < 1.0 and target_speed > 0.0:
             ranked = [EgoAction.KEEP_DIRECTION, *ranked]  # turning needs speed
+        elif ranked[0] != EgoAction.KEEP_DIRECTION and speed < min(cfg.scripted_turn_speed, target_speed):
+            # A turn holds the speed: alternate accelerating straight with quick turns, pursuit's
+            # feedback choosing which, until the turn can be driven at speed.
+            ranked = [a for a in ranked if a in _ACCELERATING_TURN] + ranked
         for action in ranked:
             if action_mask is None or action_mask[int(action)]:
                 return int(action)

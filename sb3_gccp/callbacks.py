@@ -34,7 +34,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 from tqdm.auto import tqdm
 
-from gccp_envs.config import reject_unknown_keys, require_int, require_positive
+from gccp_envs.config import reject_unknown_keys, require_int, require_non_negative, require_positive
 from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.prediction import (
     ConstantVelocityPredictor,
@@ -89,16 +89,21 @@ class GCCPSettings:
     mask_ego_deceleration: float | None = None
     """In those extra steps the ego brakes to a stop at this deceleration [m/s^2]; null (the shipped
     mask): it goes on at its last predicted velocity like the neighbours. 4 was tried, not adopted."""
+    mask_yield_margin: float | None = None
+    """A neighbour that stands with the ego's box in its lane ahead waits for the ego: it is checked where
+    it stands, with this box margin [m], instead of along its prediction; null: along its prediction
+    (the paper). Breaks the stand-offs in which the ego blocks a car that the mask predicts to go."""
 
     def __post_init__(self) -> None:
         if self.predictor not in PREDICTORS:
             raise ValueError(f"gccp.predictor must be one of {', '.join(PREDICTORS)}, got {self.predictor!r}")
         for name in ("n_episodes", "predictor_batch_size", "buffer_capacity", "save_every_episodes"):
             require_int(f"gccp.{name}", getattr(self, name))
-        if not isinstance(self.mask_margin, (int, float)) or self.mask_margin < 0:
-            raise ValueError(f"gccp.mask_margin must be a non-negative number, got {self.mask_margin!r}")
+        require_non_negative("gccp.mask_margin", self.mask_margin)
         if self.mask_ego_deceleration is not None:
             require_positive("gccp.mask_ego_deceleration", self.mask_ego_deceleration)
+        if self.mask_yield_margin is not None:
+            require_non_negative("gccp.mask_yield_margin", self.mask_yield_margin)
         for name in ("mask_after_episodes", "predictor_steps_per_episode", "mask_extrapolate_steps"):
             require_int(f"gccp.{name}", getattr(self, name), minimum=0)
         if self.planner_episodes is not None and (
@@ -130,6 +135,7 @@ class GCCPSettings:
             CollisionChecker(margin=self.mask_margin),
             self.mask_extrapolate_steps,
             self.mask_ego_deceleration,
+            self.mask_yield_margin,
         )
 
     def make_predictor(self) -> nn.Module | None:

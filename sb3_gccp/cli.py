@@ -223,8 +223,10 @@ def _export(args: argparse.Namespace) -> None:
     from sb3_gccp.export import export_run
 
     try:
-        written = export_run(args.run, args.out)
-    except (ValueError, OSError) as err:
+        written = export_run(
+            args.run, args.out, parse_assignments(args.set), parse_assignments(args.mask, "--mask")
+        )
+    except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
     size = sum(path.stat().st_size for path in written)
     print(f"exported {args.run} to {args.out}: {len(written)} files, {size / 1e6:.1f} MB")
@@ -364,7 +366,7 @@ def add_mask_overrides(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="KEY=VALUE",
         help="override a GCCP check setting of hierarchy.yml (repeatable): mask_margin, "
-        "mask_extrapolate_steps, mask_ego_deceleration",
+        "mask_extrapolate_steps, mask_ego_deceleration, mask_yield_margin",
     )
 
 
@@ -519,6 +521,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     export.add_argument("run", help="a decider run folder (hierarchy.yml) or a baseline run folder")
     export.add_argument("out", help="a new (or empty) folder")
+    add_world_overrides(export)
+    add_mask_overrides(export)
     export.set_defaults(func=_export)
 
     config = sub.add_parser("config", help="print the world config keys, values and meanings")

@@ -142,6 +142,7 @@ def train_decider(request: StageRequest) -> Path:
         "mask_margin": gccp.mask_margin,
         "mask_extrapolate_steps": gccp.mask_extrapolate_steps,
         "mask_ego_deceleration": gccp.mask_ego_deceleration,
+        "mask_yield_margin": gccp.mask_yield_margin,
         "world": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(world).items()},
     }
     (run_dir / HIERARCHY_FILE).write_text(yaml.safe_dump(hierarchy, sort_keys=False))

@@ -6,6 +6,9 @@ SB3 ``.zip`` files lose their optimisers' moment estimates on the way (Adam's ``
 ``exp_avg_sq`` are two thirds of a decider ``.zip``): they load and predict exactly as before, and
 training resumed from an exported model restarts those estimates (a run's ``checkpoints/`` keep them).
 The run's records come along when present: command, config, episodes, evaluation, training curve.
+World config keys and GCCP check settings can be replaced on the way (``--set``, ``--mask``), so that the
+exported hierarchy runs, for example, another planner setting than it was trained with; ``hierarchy.yml``
+then holds the new values and the run's records the old ones.
 """
 
 from __future__ import annotations
@@ -13,11 +16,14 @@ from __future__ import annotations
 import io
 import shutil
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch as th
 import yaml
 
+from gccp_envs.config import IntersectionConfig
 from sb3_gccp.baselines import BASELINE_FILE, read_baseline_spec
 from sb3_gccp.hierarchy import HIERARCHY_FILE, load_hierarchy
 from sb3_gccp.hyperparams import read_yaml_mapping
@@ -52,10 +58,18 @@ def strip_optimizer_state(source: str | Path, target: str | Path) -> None:
             zout.writestr(item, data)
 
 
-def export_run(run_dir: str | Path, out_dir: str | Path) -> list[Path]:
+def export_run(
+    run_dir: str | Path,
+    out_dir: str | Path,
+    world: Mapping[str, Any] | None = None,
+    mask: Mapping[str, Any] | None = None,
+) -> list[Path]:
     """Export a hierarchy or baseline run folder into a new folder; return the files written.
 
-    :raises ValueError: not a run folder, or ``out_dir`` exists and is not empty (nothing is overwritten)
+    :param world: world config keys replacing those of a hierarchy's ``hierarchy.yml``
+    :param mask: GCCP check settings (``MASK_KEYS``) replacing those of a hierarchy's ``hierarchy.yml``
+    :raises ValueError: not a run folder, ``out_dir`` exists and is not empty (nothing is overwritten), a
+        bad replacement, or replacements for a baseline
     """
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     if not run_dir.is_dir():
@@ -63,8 +77,10 @@ def export_run(run_dir: str | Path, out_dir: str | Path) -> list[Path]:
     if out_dir.exists() and any(out_dir.iterdir()):
         raise ValueError(f"{out_dir} exists and is not empty: export into a new folder")
     if (run_dir / HIERARCHY_FILE).is_file():
-        plan = _hierarchy_files(run_dir)
+        plan = _hierarchy_files(run_dir, world or {}, mask or {})
     elif (run_dir / BASELINE_FILE).is_file():
+        if world or mask:
+            raise ValueError("--set and --mask change hierarchy runs only, not a baseline")
         plan = _baseline_files(run_dir)
     else:
         raise ValueError(f"{run_dir} holds neither {HIERARCHY_FILE} nor {BASELINE_FILE}")
@@ -92,10 +108,19 @@ def _baseline_files(run_dir: Path) -> dict[str, Path | str]:
     return {"model.zip": model, BASELINE_FILE: yaml.safe_dump({"algorithm": name, "model": "model.zip"})}
 
 
-def _hierarchy_files(run_dir: Path) -> dict[str, Path | str]:
+def _hierarchy_files(
+    run_dir: Path, world: Mapping[str, Any], mask: Mapping[str, Any]
+) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a hierarchy's export, with the rewritten hierarchy.yml."""
-    hierarchy = load_hierarchy(run_dir)
+    hierarchy = load_hierarchy(run_dir, mask)
     spec = read_yaml_mapping(run_dir / HIERARCHY_FILE, "hierarchy file")
+    world_spec = spec.pop("world", None)
+    spec.update(mask)
+    if world_spec is not None:
+        spec["world"] = world_spec  # the check's settings before the world, as training writes them
+    if world:
+        spec["world"] = {**dict(spec.get("world") or {}), **world}
+        IntersectionConfig.from_dict(spec["world"])  # one-line ValueError on a bad key or value
     files: dict[str, Path | str] = {"decider.zip": hierarchy.decider}
     spec["decider"] = "decider.zip"
     if hierarchy.planner is not None:

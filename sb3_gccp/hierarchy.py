@@ -9,6 +9,8 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     mask_margin: 0.0              # GCCP collision check: box margin [m] and steps beyond T_f
     mask_extrapolate_steps: 0     #   (both optional, 0 if absent)
     mask_ego_deceleration: null   # the ego brakes in those steps [m/s^2] (optional; null: goes on)
+    mask_yield_margin: null       # neighbours waiting for the ego checked where they stand, with this
+                                  #   margin [m] (optional; null: along their prediction)
     world: {...}                  # the world config the decider was trained on
 """
 
@@ -19,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gccp_envs.config import IntersectionConfig, require_int, require_positive
+from gccp_envs.config import IntersectionConfig, require_int, require_non_negative, require_positive
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.callbacks import LEARNED, PREDICTORS
 from sb3_gccp.collision import CollisionChecker
@@ -45,6 +47,7 @@ class Hierarchy:
     mask_margin: float = 0.0
     mask_extrapolate_steps: int = 0
     mask_ego_deceleration: float | None = None
+    mask_yield_margin: float | None = None
 
     def make_env(
         self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
@@ -63,7 +66,7 @@ class Hierarchy:
         if self.predictor == "none":
             return None
         checker = CollisionChecker(margin=self.mask_margin)
-        extrapolation = (self.mask_extrapolate_steps, self.mask_ego_deceleration)
+        extrapolation = (self.mask_extrapolate_steps, self.mask_ego_deceleration, self.mask_yield_margin)
         if self.predictor == "cv":
             return GCCPMask(ConstantVelocityPredictor(), checker, *extrapolation)
         assert self.predictor_weights is not None
@@ -74,23 +77,29 @@ class Hierarchy:
         return FrozenPolicy(self.decider, deterministic=deterministic)
 
 
-MASK_KEYS = ("mask_margin", "mask_extrapolate_steps", "mask_ego_deceleration")
+MASK_KEYS = ("mask_margin", "mask_extrapolate_steps", "mask_ego_deceleration", "mask_yield_margin")
 """The keys of ``hierarchy.yml`` that set the GCCP collision check (``load_hierarchy``'s ``mask``)."""
 
 
-def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, float | None]:
-    """``mask_margin``, ``mask_extrapolate_steps`` and ``mask_ego_deceleration`` of a hierarchy spec.
+def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, float | None, float | None]:
+    """The GCCP check settings (``MASK_KEYS``, in order) of a hierarchy spec.
 
     :raises ValueError: one line naming the key whose value is not of its kind
     """
     margin, steps = spec.get("mask_margin", 0.0), spec.get("mask_extrapolate_steps", 0)
-    deceleration = spec.get("mask_ego_deceleration")
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
-        raise ValueError(f"{where}: mask_margin must be a non-negative number [m], got {margin!r}")
+    deceleration, yield_margin = spec.get("mask_ego_deceleration"), spec.get("mask_yield_margin")
+    require_non_negative(f"{where}: mask_margin", margin)
+    if yield_margin is not None:
+        require_non_negative(f"{where}: mask_yield_margin", yield_margin)
     require_int(f"{where}: mask_extrapolate_steps", steps, minimum=0)
     if deceleration is not None:
         require_positive(f"{where}: mask_ego_deceleration", deceleration)
-    return float(margin), steps, None if deceleration is None else float(deceleration)
+    return (
+        float(margin),
+        steps,
+        None if deceleration is None else float(deceleration),
+        None if yield_margin is None else float(yield_margin),
+    )
 
 
 def load_hierarchy(path: str | Path, mask: Mapping[str, Any] | None = None) -> Hierarchy:

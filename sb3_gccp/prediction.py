@@ -31,6 +31,7 @@ import torch as th
 from torch import nn
 
 from gccp_envs.config import DT, IntersectionConfig, reject_unknown_keys, require_int
+from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH
 from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
 
@@ -223,6 +224,46 @@ class ConstantVelocityPredictor(nn.Module):
         return future[:, None].expand(goals.shape[0], goals.shape[1], *future.shape[1:])
 
 
+YIELD_SPEED = 0.5
+"""Below this speed [m/s] a neighbour counts as standing (for ``GCCPMask``'s ``yield_margin``)."""
+YIELD_REACH = 8.0
+"""How far [m] ahead of a standing neighbour's front the ego's box must reach for it to wait for the ego."""
+YIELD_LATERAL = 0.5
+"""... and how far [m] beyond its sides."""
+
+
+def latest_states(obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Each neighbour's pose (x, y, heading) in the ego frame, (N_s, 3), and speed, (N_s,), from its last
+    real history vector (zeros where absent); the numpy twin of :func:`current_poses` for one observation."""
+    history = np.asarray(obs["history"])[1:]
+    mask: np.ndarray = np.asarray(obs["history_mask"])[1:] > 0
+    real = np.asarray(mask.any(-1))
+    last = np.where(real, mask.shape[-1] - 1 - mask[:, ::-1].argmax(-1), 0)
+    state = np.asarray(history[np.arange(len(history)), last, 4:8], np.float64) * real[:, None]
+    return state[:, :3], state[:, 3]
+
+
+def yielding(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Which neighbours stand with a corner of the ego's box in their lane ahead (within
+    ``YIELD_LATERAL`` of their sides), within ``YIELD_REACH`` of their front: the traffic waits there for
+    the ego to clear its path.
+
+    :param obs: one decider observation
+    :return: (N_s,) bool
+    """
+    pose, speed = latest_states(obs)
+    half_length, half_width = VEHICLE_LENGTH / 2.0, VEHICLE_WIDTH / 2.0
+    # The ego's corners, at the origin of its frame, in each neighbour's frame.
+    corners = np.array([(a * half_length, b * half_width) for a in (1, -1) for b in (1, -1)])
+    c, s = np.cos(pose[:, 2:]), np.sin(pose[:, 2:])
+    dx, dy = corners[None, :, 0] - pose[:, :1], corners[None, :, 1] - pose[:, 1:2]
+    along, lateral = dx * c + dy * s, -dx * s + dy * c  # (N_s, 4)
+    ahead = (along > half_length) & (along < half_length + YIELD_REACH)
+    in_lane = np.abs(lateral) < half_width + YIELD_LATERAL
+    present = np.asarray(obs["history_mask"])[1:].any(-1)
+    return np.asarray(present & (speed < YIELD_SPEED) & (ahead & in_lane).any(-1))
+
+
 class GCCPMask:
     """The GCCP module as the decider env's mask function: which subgoal candidates are safe (III-C-2).
 
@@ -237,6 +278,9 @@ class GCCPMask:
         vehicle going on at the speed and heading of its last predicted step (0: the paper)
     :param ego_deceleration: in those steps the ego brakes at this deceleration [m/s^2] instead, to a
         stop (it can always brake after its subgoal); ``None``: it goes on like the others
+    :param yield_margin: a neighbour that stands with the ego's box in its lane ahead (see
+        :func:`yielding`) waits for the ego, so it is checked where it stands, with this box margin [m],
+        instead of along its predicted future; ``None``: every neighbour along its prediction (the paper)
     """
 
     def __init__(
@@ -245,15 +289,26 @@ class GCCPMask:
         checker: CollisionChecker | None = None,
         extrapolate_steps: int = 0,
         ego_deceleration: float | None = None,
+        yield_margin: float | None = None,
     ) -> None:
         if extrapolate_steps < 0:
             raise ValueError(f"extrapolate_steps must be non-negative, got {extrapolate_steps!r}")
         if ego_deceleration is not None and ego_deceleration <= 0:
             raise ValueError(f"ego_deceleration must be positive or None, got {ego_deceleration!r}")
+        if yield_margin is not None and yield_margin < 0:
+            raise ValueError(f"yield_margin must be non-negative or None, got {yield_margin!r}")
         self.predictor = predictor.eval()
         self.checker = checker or CollisionChecker()
         self.extrapolate_steps = extrapolate_steps
         self.ego_deceleration = ego_deceleration
+        self.yield_checker = None
+        if yield_margin is not None:
+            margin = self.checker.margin
+            self.yield_checker = CollisionChecker(
+                (self.checker.ego_size[0] - margin, self.checker.ego_size[1] - margin),
+                (self.checker.neighbour_size[0] - margin, self.checker.neighbour_size[1] - margin),
+                yield_margin,
+            )
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
@@ -287,7 +342,13 @@ class GCCPMask:
         future = extrapolate(predicted, self.extrapolate_steps)
         if self.ego_deceleration is not None and self.extrapolate_steps:
             future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
-        return self.checker.action_mask(future[:, 0], future[:, 1:], present)
+        waiting = yielding(obs) & present if self.yield_checker is not None else np.zeros_like(present)
+        allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
+        if waiting.any():
+            assert self.yield_checker is not None
+            standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)
+            allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
+        return allowed
 
 
 def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:

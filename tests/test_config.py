@@ -71,6 +71,7 @@ def test_replace_validates():
         ({"npc_patience": 0.0}, "npc_patience must be a positive number"),
         ({"npc_patience": "8"}, "npc_patience must be a positive number"),
         ({"scripted_stop_aligned": "yes"}, "scripted_stop_aligned must be true or false"),
+        ({"scripted_turn_speed": 0.0}, "scripted_turn_speed must be a positive number"),
         ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
         ({"spawn_probability": -0.1}, "spawn_probability"),

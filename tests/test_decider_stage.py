@@ -203,7 +203,12 @@ def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
     spec.update(mask_ego_deceleration=4.0)
     (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
     braking = load_hierarchy(tmp_path).mask_fn()
-    assert braking is not None and braking.ego_deceleration == 4.0
+    assert braking is not None and braking.ego_deceleration == 4.0 and braking.yield_checker is None
+    spec.update(mask_yield_margin=0.5)
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    held = load_hierarchy(tmp_path).mask_fn()
+    assert held is not None and held.yield_checker is not None and held.yield_checker.margin == 0.5
+    assert held.yield_checker.ego_size == (5.5, 2.5) and held.checker.ego_size == (6.0, 3.0)
 
 
 def _cv_hierarchy(folder: Path, **settings: object) -> None:
@@ -230,6 +235,7 @@ def test_mask_settings_given_at_load_replace_the_hierarchy_files(tmp_path):
         ({"mask_extrapolate_steps": 2.5}, "mask_extrapolate_steps must be a non-negative integer"),
         ({"mask_extrapolate_steps": True}, "mask_extrapolate_steps must be a non-negative integer"),
         ({"mask_ego_deceleration": 0}, "mask_ego_deceleration must be a positive number"),
+        ({"mask_yield_margin": -0.5}, "mask_yield_margin must be a non-negative number"),
     ],
 )
 def test_bad_mask_settings_are_rejected_in_one_line(tmp_path, settings, message):

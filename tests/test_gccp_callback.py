@@ -168,6 +168,10 @@ def test_settings_build_the_mask_with_their_margin_and_extrapolation():
     assert paper.ego_deceleration is None and mask.ego_deceleration is None
     braking = GCCPSettings(mask_extrapolate_steps=5, mask_ego_deceleration=4.0)
     assert braking.make_mask(ConstantVelocityPredictor()).ego_deceleration == 4.0
+    held = GCCPSettings(mask_margin=1.0, mask_yield_margin=0.5).make_mask(ConstantVelocityPredictor())
+    assert held.yield_checker is not None and held.yield_checker.margin == 0.5
+    with pytest.raises(ValueError, match=r"gccp\.mask_yield_margin must be a non-negative number"):
+        GCCPSettings(mask_yield_margin="wide")
 
 
 def test_rolling_rate_and_the_episode_where_success_passes_70_percent():

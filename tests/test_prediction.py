@@ -20,6 +20,7 @@ from sb3_gccp.prediction import (
     extrapolate_braking,
     load_predictor,
     save_predictor,
+    yielding,
 )
 
 V, T_H, T_F, G = 6, 10, 10, 12
@@ -263,6 +264,50 @@ def test_mask_extrapolation_and_margin_see_conflicts_the_paper_check_misses():
     np.testing.assert_array_equal(
         GCCPMask(TowardsGoal(), CollisionChecker(margin=2.0))(stand), stand["subgoals"][:, 0] < 7.0
     )
+
+
+@pytest.mark.parametrize(
+    "neighbour, waits",
+    [
+        ((6.0, 2.0, np.pi, 0.0), True),  # standing, facing the ego, a corner of the ego in its lane
+        ((6.0, 2.0, np.pi, 5.0), False),  # moving
+        ((6.0, 2.0, 0.0, 0.0), False),  # standing, facing away
+        ((6.0, 6.0, np.pi, 0.0), False),  # standing in the next lane
+        ((16.0, 2.0, np.pi, 0.0), False),  # the ego beyond its reach
+    ],
+    ids=["waits", "moving", "facing-away", "next-lane", "far"],
+)
+def test_yielding_finds_the_standing_cars_the_ego_blocks(neighbour, waits):
+    obs = scene([(0.0, 0.0, 0.0, 0.0), neighbour])
+    np.testing.assert_array_equal(yielding(obs), [waits] + [False] * (V - 2))
+
+
+class NeighboursGo(nn.Module):
+    """A stub: the ego moves linearly to each subgoal over T_f steps, every neighbour drives 4 m on."""
+
+    def forward(self, obs: dict[str, th.Tensor], goals: th.Tensor) -> th.Tensor:
+        out = TowardsGoal()(obs, goals)
+        fraction = th.arange(1, T_F + 1) / T_F
+        heading = out[:, :, 1:, :, 2]
+        out[:, :, 1:, :, 0] += 4.0 * fraction * th.cos(heading)
+        out[:, :, 1:, :, 1] += 4.0 * fraction * th.sin(heading)
+        return out
+
+
+def test_mask_lets_the_ego_go_past_a_car_that_waits_for_it():
+    # The ego stands across the lane of a car standing 2.5 m from it, which the predictor sends on into
+    # the ego's path under every candidate; that car waits for the ego, so held where it stands it
+    # leaves every candidate free (its box 1.25 m from the ego's path with a 0.5 m margin).
+    obs = scene([(0.0, 0.0, 0.0, 0.0), (3.5, -5.0, np.pi / 2, 0.0)])
+    assert not GCCPMask(NeighboursGo(), CollisionChecker(margin=1.0))(obs).any()
+    held = GCCPMask(NeighboursGo(), CollisionChecker(margin=1.0), yield_margin=0.5)
+    assert held(obs).all()
+    assert not GCCPMask(NeighboursGo(), CollisionChecker(margin=1.0), yield_margin=2.5)(obs).any()
+    # A car that moves is checked along its prediction as before.
+    moving = scene([(0.0, 0.0, 0.0, 0.0), (3.5, -5.0, np.pi / 2, 3.0)])
+    assert not held(moving).any()
+    with pytest.raises(ValueError, match="yield_margin"):
+        GCCPMask(ConstantVelocityPredictor(), yield_margin=-1.0)
 
 
 def test_mask_allows_everything_without_neighbours():

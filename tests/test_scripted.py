@@ -107,6 +107,49 @@ def test_scripted_planner_stops_in_line_with_its_lane():
     assert headings[True] < 0.05 < 0.15 < headings[False]
 
 
+@pytest.mark.parametrize(
+    ("goal", "speed", "action"),
+    [
+        ((10.0, -3.0, 0.0), 2.0, EgoAction.KEEP_DIRECTION),  # pursuit 0.055: straight is nearer than 1/6
+        ((6.0, -4.0, 0.0), 2.0, EgoAction.QUICKLY_TURN_LEFT),  # pursuit 0.154
+        ((10.0, 3.0, 0.0), 2.0, EgoAction.KEEP_DIRECTION),
+        ((10.0, -3.0, 0.0), 5.0, EgoAction.SLOWLY_TURN_LEFT),  # fast enough: the nearest curvature
+        ((1.5, 0.0, 0.0), 0.5, EgoAction.KEEP_DIRECTION),  # about to stop: no faster than the goal allows
+    ],
+)
+def test_scripted_planner_accelerates_through_slow_turns(goal, speed, action):
+    brisk = ScriptedPlanner(IntersectionConfig(scripted_turn_speed=4.0))
+    assert brisk(planner_obs(goal, speed)) == action
+    if goal == (10.0, -3.0, 0.0):
+        assert PLANNER(planner_obs(goal, speed)) == EgoAction.SLOWLY_TURN_LEFT  # the default holds 2 m/s
+
+
+def test_scripted_planner_does_not_crawl_through_a_turn_from_a_stop():
+    # Standing at the stop line of a left turn, sent 25 m on along it: by default the ego turns at the
+    # 1 m/s it first accelerates to; with scripted_turn_speed it gets through the turn, on the road.
+    config = IntersectionConfig(spawn_probability=0.0, task="left", decision_period=100)
+    travelled, speeds = {}, {}
+    for turn_speed in (1.0, 4.0):
+        env = gym.make("GCCPPlanner-v0", config=replace(config, scripted_turn_speed=turn_speed)).unwrapped
+        env.reset(seed=0)
+        layout = env.world.layout
+        path = layout.paths_from(0, turn="left")[0]
+        place_ego_on_path(env.world, path, layout.stop_s - 2.5, 0.0)
+        env._subgoal, env._holding = path_pose(layout, path, layout.stop_s + 25.0), True
+        obs = env._observe()
+        planner = ScriptedPlanner(env.config)
+        start = np.array([env.world.ego.x, env.world.ego.y])
+        top = 0.0
+        for _ in range(60):
+            obs, _, terminated, _, _ = env.step(planner(obs, env.action_masks()))
+            assert not terminated  # neither off the road nor past the exit
+            top = max(top, env.world.ego.speed)
+        travelled[turn_speed] = float(np.hypot(env.world.ego.x - start[0], env.world.ego.y - start[1]))
+        speeds[turn_speed] = top
+    assert speeds[1.0] < 1.5 < 3.5 < speeds[4.0]
+    assert travelled[1.0] < 8.0 < 15.0 < travelled[4.0]
+
+
 def test_farthest_subgoal_decider():
     decider = FarthestSubgoalDecider()
     subgoals = np.zeros((12, 3), np.float32)
