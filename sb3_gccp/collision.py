@@ -36,6 +36,14 @@ class CollisionChecker:
         self.neighbour_size = (neighbour_size[0] + margin, neighbour_size[1] + margin)
         self.margin = margin
 
+    def with_margin(self, margin: float) -> CollisionChecker:
+        """A checker of the same boxes with another margin [m]."""
+        return CollisionChecker(
+            (self.ego_size[0] - self.margin, self.ego_size[1] - self.margin),
+            (self.neighbour_size[0] - self.margin, self.neighbour_size[1] - self.margin),
+            margin,
+        )
+
     def collides(
         self,
         ego: NDArray[np.floating],

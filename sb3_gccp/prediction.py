@@ -301,14 +301,7 @@ class GCCPMask:
         self.checker = checker or CollisionChecker()
         self.extrapolate_steps = extrapolate_steps
         self.ego_deceleration = ego_deceleration
-        self.yield_checker = None
-        if yield_margin is not None:
-            margin = self.checker.margin
-            self.yield_checker = CollisionChecker(
-                (self.checker.ego_size[0] - margin, self.checker.ego_size[1] - margin),
-                (self.checker.neighbour_size[0] - margin, self.checker.neighbour_size[1] - margin),
-                yield_margin,
-            )
+        self.yield_checker = None if yield_margin is None else self.checker.with_margin(yield_margin)
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
