@@ -127,13 +127,14 @@ class IntersectionConfig:
     scripted_stop_aligned: bool = False
     """Whether the scripted planner, stopping on a goal whose heading differs from its own, first turns
     towards it (a turn holds speed, so it brakes a step later) rather than braking askew across lanes.
-    Tried in session 17 and not adopted: fewer stand-offs, more collisions (README)."""
+    Tried and not adopted: fewer stand-offs, more collisions
+    (docs/experiments/2026-11-25-stand-offs-at-the-stop-line.md)."""
     scripted_turn_speed: float = 1.0
     """Speed [m/s] up to which the scripted planner, going on through a turn, steers with 'keep direction'
     or a quick turn, whichever curvature is nearer pure pursuit's, so that it accelerates on the straight
     steps (a turn holds the speed). Below 1 m/s it always accelerates straight first, so the default 1.0
     adds nothing, and an ego that starts a turn from a stop crawls through it at 1 m/s; the shipped
-    hierarchy runs 4.0 (ours, session 19)."""
+    hierarchy runs 4.0 (ours; docs/experiments/2026-11-25-turn-speed-and-yield-margin.md)."""
     mask_lookahead: int = 5
     """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
     and some action held for the remaining steps keeps it there (1: the next step only)."""
