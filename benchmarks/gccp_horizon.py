@@ -5,7 +5,7 @@ The hierarchy is the scripted one (the farthest allowed candidate over the scrip
 planner, which stops on a near subgoal), so only the mask changes between rows. Every row plays the
 same seeded traffic flows. Prints one row per mask and, last, ``best_collision_rate <rate>``.
 
-    python benchmarks/gccp_horizon.py --predictor pretrained/learned_planner/predictor.pt
+    python benchmarks/gccp_horizon.py --predictor pretrained/predictor.pt
 """
 
 from __future__ import annotations

@@ -85,7 +85,7 @@ class GCCPSettings:
     """Extra length and width [m] of every box in the collision check (paper: none)."""
     mask_extrapolate_steps: int = 0
     """Steps checked beyond the predicted T_f, every vehicle keeping its last predicted velocity
-    (paper: 0, a 1 s check; see the README for why a longer one helps at our speeds)."""
+    (paper: 0, a 1 s check; see docs/design.md for why a longer one helps at our speeds)."""
     mask_ego_deceleration: float | None = None
     """In those extra steps the ego brakes to a stop at this deceleration [m/s^2]; null (the shipped
     mask): it goes on at its last predicted velocity like the neighbours. 4 was tried, not adopted."""

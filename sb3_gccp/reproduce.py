@@ -142,7 +142,7 @@ class Preset:
 
     planner_timesteps: int
     """Motion-planner pre-training steps on GCCPPlanner-v0, an extra cost of ours (paper preset:
-    100,000, as ``pretrained/learned_planner/planner.zip``)."""
+    100,000)."""
     episodes: int
     """N_e: training episodes of every method, baselines included (paper: 2000, "same episode budget")."""
     mask_after_episodes: int | None

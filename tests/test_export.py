@@ -12,10 +12,11 @@ from sb3_gccp.export import export_run
 from sb3_gccp.hierarchy import load_hierarchy
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
+HIERARCHY = "seeds/seed1"  # a shipped hierarchy run as trained
 
 
 def test_export_writes_the_replaced_settings_and_keeps_the_rest(tmp_path):
-    source = PRETRAINED / "session16"
+    source = PRETRAINED / HIERARCHY
     export_run(source, tmp_path / "out", {"scripted_turn_speed": 4.0}, {"mask_yield_margin": 0.5})
     before = yaml.safe_load((source / "hierarchy.yml").read_text())
     after = yaml.safe_load((tmp_path / "out" / "hierarchy.yml").read_text())
@@ -32,9 +33,9 @@ def test_export_writes_the_replaced_settings_and_keeps_the_rest(tmp_path):
 @pytest.mark.parametrize(
     ("source", "args", "message"),
     [
-        ("session16", ["--set", "scripted_turn_sped=4"], "unknown intersection config key(s)"),
-        ("session16", ["--set", "scripted_turn_speed=0"], "scripted_turn_speed must be a positive number"),
-        ("session16", ["--mask", "mask_yield_margin=-1"], "mask_yield_margin must be a non-negative number"),
+        (HIERARCHY, ["--set", "scripted_turn_sped=4"], "unknown intersection config key(s)"),
+        (HIERARCHY, ["--set", "scripted_turn_speed=0"], "scripted_turn_speed must be a positive number"),
+        (HIERARCHY, ["--mask", "mask_yield_margin=-1"], "mask_yield_margin must be a non-negative number"),
         ("baselines/ppo", ["--set", "duration=20"], "--set and --mask change hierarchy runs only"),
     ],
 )
