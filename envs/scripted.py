@@ -69,6 +69,8 @@ class ScriptedPlanner:
         return int(EgoAction.SLOW_DOWN)
 
 
+ROLLOUT_CACHE_SIZE = 512
+"""Rollouts the search planner keeps, by speed."""
 BOX_HALF_LENGTH = 2.5
 """Half the ego's length [m] (the vehicles' 5 m)."""
 BOX_HALF_WIDTH = 1.0
@@ -97,9 +99,15 @@ class SearchPlanner:
         horizon: int = 30,
         radius_share: float = 0.75,
         heading_share: float = 0.8,
+        hold_distance: float | None = None,
     ) -> None:
         self.config = config
         self.horizon = horizon
+        self.hold_distance = config.subgoal_spacing / 2.0 + 0.1 if hold_distance is None else hold_distance
+        """A goal at most this far ahead [m] is a hold (the lattice point nearest the ego lies at most
+        half a spacing along its route): brake and stand on it rather than drive through it, and where
+        it lies on another lane out of reach, brake rather than swerve towards it. 0: only goals behind,
+        or reached, mean braking."""
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
         self.motion = EgoMotion(config)
@@ -122,9 +130,27 @@ class SearchPlanner:
         ]
         self.sequences = np.concatenate([pairs, np.array(rows)]).astype(np.int64)
         """(S, horizon) actions of the library."""
+        self._rollouts: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def rollout(self, speed: float) -> np.ndarray:
-        """Ego-frame poses (x, y, heading) of every sequence from the origin at ``speed``, (S, horizon, 3)."""
+        """Ego-frame poses (x, y, heading) of every sequence from the origin at ``speed``, (S, horizon, 3).
+
+        Cached by speed (to 1 um/s): a car at cruise speed or standing asks for the same rollout again.
+        """
+        return self._cached(speed)[0]
+
+    def _cached(self, speed: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rollout at ``speed`` with its corners' BEV pixels (:meth:`corner_pixels`)."""
+        key = round(float(speed), 6)
+        cached = self._rollouts.get(key)
+        if cached is None:
+            if len(self._rollouts) >= ROLLOUT_CACHE_SIZE:
+                self._rollouts.pop(next(iter(self._rollouts)))
+            poses = self._rollout(key)
+            cached = self._rollouts[key] = (poses, *self.corner_pixels(poses, self.config.bev_size))
+        return cached
+
+    def _rollout(self, speed: float) -> np.ndarray:
         n = len(self.sequences)
         pose, v = np.zeros((n, 3)), np.full(n, speed)
         poses = np.empty((n, self.horizon, 3))
@@ -140,20 +166,28 @@ class SearchPlanner:
         :param poses: (..., 3) ego-frame poses
         :param bev: (S, S) drivable area, ego at the centre, forward up (the observation's ``bev[0]``)
         """
-        cfg = self.config
-        size = bev.shape[0]
-        pixel = cfg.bev_extent / size
+        return self._on_road(*self.corner_pixels(poses, bev.shape[0]), bev)
+
+    @staticmethod
+    def _on_road(pixels: np.ndarray, inside: np.ndarray, bev: np.ndarray) -> np.ndarray:
+        return (~inside | (bev.ravel()[pixels] > 0)).all(-1)
+
+    def corner_pixels(self, poses: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Flat BEV pixel index of each corner of the ego's box (shrunk by half a pixel) at each pose,
+        (..., 4), and whether it lies inside the view (those outside index pixel 0)."""
+        pixel = self.config.bev_extent / size
         half_length, half_width = BOX_HALF_LENGTH - pixel / 2.0, BOX_HALF_WIDTH - pixel / 2.0
-        ok = np.ones(poses.shape[:-1], bool)
         c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
+        pixels, inside = [], []
         for along, side in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
             x = poses[..., 0] + along * half_length * c - side * half_width * s
             y = poses[..., 1] + along * half_length * s + side * half_width * c
             row = np.floor(size / 2.0 - x / pixel).astype(np.int64)
             col = np.floor(y / pixel + size / 2.0).astype(np.int64)
-            inside = (row >= 0) & (row < size) & (col >= 0) & (col < size)
-            ok &= ~inside | (bev[np.clip(row, 0, size - 1), np.clip(col, 0, size - 1)] > 0)
-        return ok
+            within = (row >= 0) & (row < size) & (col >= 0) & (col < size)
+            pixels.append(np.where(within, row * size + col, 0))
+            inside.append(within)
+        return np.stack(pixels, -1), np.stack(inside, -1)
 
     def __call__(self, obs: dict[str, np.ndarray], action_mask: np.ndarray | None = None) -> int:
         """The action for one step."""
@@ -162,13 +196,26 @@ class SearchPlanner:
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
         allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
-        stop = (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading)
+        stop = (
+            (gx < 0.5 and distance < 3.0)
+            or (distance <= self.radius and abs(gh) <= self.heading)
+            or (gx <= self.hold_distance and abs(gy) <= self.radius)
+        )
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
-        poses = self.rollout(speed)
+        poses, pixels, inside = self._cached(speed)
+        on_road = np.ones(poses.shape[:2], bool)
+        if "bev" in obs:
+            bev = obs["bev"][0]
+            on_road = (
+                self.on_road(poses, bev)
+                if bev.shape[0] != self.config.bev_size
+                else self._on_road(pixels, inside, bev)
+            )
+        if stop:
+            return self._slowest_on_road(poses, np.all(on_road, axis=1), obs["goal"], allowed)
         miss = np.hypot(poses[..., 0] - gx, poses[..., 1] - gy)
         turn = np.abs((poses[..., 2] - gh + np.pi) % (2.0 * np.pi) - np.pi)
-        on_road = np.ones(poses.shape[:2], bool) if "bev" not in obs else self.on_road(poses, obs["bev"][0])
         # Only what is driven before the first step off the road counts.
         before_off = np.cumprod(on_road, axis=1).astype(bool)
         hit = (miss <= self.radius) & (turn <= self.heading) & before_off
@@ -179,6 +226,8 @@ class SearchPlanner:
         if not (hit & usable[:, None]).any():
             hit = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
         reached = hit.any(1)
+        if gx <= self.hold_distance and not (reached & usable).any():
+            return self._slowest_on_road(poses, np.all(on_road, axis=1), obs["goal"], allowed)
         # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
         lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
         steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
@@ -190,6 +239,22 @@ class SearchPlanner:
         cost = np.where(
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
+        return int(first[np.argmin(np.where(usable, cost, np.inf))])
+
+    def _slowest_on_road(
+        self, poses: np.ndarray, on_road: np.ndarray, goal: np.ndarray, allowed: np.ndarray
+    ) -> int:
+        """First action of the sequence that stays on the road (``on_road`` per sequence) and ends
+        slowest (a turn where braking straight would leave the road, then braking), the nearer to the
+        goal between equally slow ones."""
+        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
+        end_speed = np.hypot(steps[:, -1, 0], steps[:, -1, 1]) / DT
+        miss = np.hypot(poses[:, -1, 0] - goal[0], poses[:, -1, 1] - goal[1])
+        first = self.sequences[:, 0]
+        usable = (allowed[first] | ~allowed.any()) & on_road
+        if not usable.any():
+            usable = allowed[first] | ~allowed.any()
+        cost = end_speed + 0.01 * miss
         return int(first[np.argmin(np.where(usable, cost, np.inf))])
 
 

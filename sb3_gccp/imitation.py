@@ -9,19 +9,33 @@ stays at) a planner that stops. The expert is the pure-pursuit planner or the se
 (:class:`gccp_envs.scripted.SearchPlanner`, which reaches more subgoals); DAgger rounds then let the
 cloned policy drive and the expert label where it went. The planner stage runs it before PPO when the
 zoo entry has an ``imitation`` map (see :class:`ImitationSettings`).
+
+PPO alone undoes the clone's braking (README), so cloning also fits the value head to the returns of
+the driven episodes (``value_coef``: PPO's first advantages are then not noise) and, during PPO,
+:class:`BehaviourCloningCallback` takes ``bc_steps`` cloning steps on the data set after every PPO
+update, in the spirit of DAPG (Rajeswaran et al. 2018, https://arxiv.org/abs/1709.10087), which
+adds the demonstrations' likelihood to the policy gradient.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
 from sb3_contrib import MaskablePPO
+from stable_baselines3.common.callbacks import BaseCallback
 
-from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int, require_positive
+from gccp_envs.config import (
+    IntersectionConfig,
+    reject_unknown_keys,
+    require_int,
+    require_non_negative,
+    require_positive,
+)
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
 from sb3_gccp.progress import new_bar
@@ -53,6 +67,12 @@ class ImitationSettings:
     (``epochs`` passes), so that it learns to recover from its own mistakes. 0: behaviour cloning only."""
     dagger_steps: int = 20_000
     """Planner-env steps the cloned policy drives in each DAgger round."""
+    value_coef: float = 0.0
+    """Weight of the value head's squared error to the driven episodes' discounted returns (PPO's
+    ``gamma``) in the cloning loss. 0: the value head is left as it is."""
+    bc_steps: int = 0
+    """Cloning gradient steps (``batch_size`` transitions each, PPO's optimiser and learning rate) on
+    the data set after every PPO update, so that PPO cannot drift far from the expert. 0: none."""
 
     def __post_init__(self) -> None:
         if self.expert not in EXPERTS:
@@ -60,7 +80,9 @@ class ImitationSettings:
         for name in ("expert_steps", "epochs", "batch_size", "dagger_steps"):
             require_int(f"imitation.{name}", getattr(self, name))
         require_int("imitation.dagger_rounds", self.dagger_rounds, minimum=0)
+        require_int("imitation.bc_steps", self.bc_steps, minimum=0)
         require_positive("imitation.learning_rate", self.learning_rate)
+        require_non_negative("imitation.value_coef", self.value_coef)
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any] | None) -> ImitationSettings:
@@ -79,14 +101,43 @@ class ImitationSettings:
 
 @dataclass
 class ExpertData:
-    """Steps labelled by the expert: observations (one array per key), masks and the expert's actions."""
+    """Steps labelled by the expert: observations (one array per key), masks, the expert's actions and
+    the discounted returns of the episodes as driven."""
 
     obs: dict[str, np.ndarray]
     masks: np.ndarray
     actions: np.ndarray
+    returns: np.ndarray
     episodes: int
     agreement: float = 1.0
     """Share of the steps where the driver took the expert's action (1 when the expert drives)."""
+
+    def save(self, path: Path) -> None:
+        """Write the data set to a compressed ``.npz`` file (observation keys prefixed ``obs/``)."""
+        arrays: dict[str, Any] = {f"obs/{key}": value for key, value in self.obs.items()}
+        arrays.update(
+            masks=self.masks,
+            actions=self.actions,
+            returns=self.returns,
+            episodes=self.episodes,
+            agreement=self.agreement,
+        )
+        with path.open("wb") as file:
+            np.savez_compressed(file, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> ExpertData:
+        """The data set written by :meth:`save`."""
+        with np.load(path) as saved:
+            obs = {key[4:]: saved[key] for key in saved.files if key.startswith("obs/")}
+            return cls(
+                obs,
+                saved["masks"],
+                saved["actions"],
+                saved["returns"],
+                int(saved["episodes"]),
+                float(saved["agreement"]),
+            )
 
     def __add__(self, other: ExpertData) -> ExpertData:
         """Both data sets in one (DAgger's aggregation)."""
@@ -94,6 +145,7 @@ class ExpertData:
             {key: np.concatenate((value, other.obs[key])) for key, value in self.obs.items()},
             np.concatenate((self.masks, other.masks)),
             np.concatenate((self.actions, other.actions)),
+            np.concatenate((self.returns, other.returns)),
             self.episodes + other.episodes,
             (self.agreement * len(self.actions) + other.agreement * len(other.actions))
             / (len(self.actions) + len(other.actions)),
@@ -121,18 +173,20 @@ def collect_expert(
     progress: bool = False,
     expert: str = "scripted",
     driver: Driver | None = None,
+    gamma: float = 0.99,
 ) -> ExpertData:
     """Label ``steps`` steps of ``GCCPPlanner-v0`` (episodes seeded from ``seed`` on) with an expert
     planner's actions.
 
     :param expert: a key of ``EXPERTS``
     :param driver: who drives (DAgger: the cloned policy); default the expert itself
+    :param gamma: discount of the returns (the episode cut off by ``steps`` counts as ended there)
     :return: the states visited, with the expert's actions
     """
     env = GCCPPlannerEnv(world)
     label = EXPERTS[expert](env.config)
     records: list[dict[str, np.ndarray]] = []
-    masks, actions = [], []
+    masks, actions, rewards, ends = [], [], [], []
     episode = agreed = 0
     obs, _ = env.reset(seed=seed)
     with new_bar(
@@ -150,24 +204,40 @@ def collect_expert(
                 action = driven
             else:
                 agreed += 1
-            obs, _, terminated, truncated, _ = env.step(action)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            rewards.append(reward)
+            ends.append(terminated or truncated)
             if terminated or truncated:
                 episode += 1
                 obs, _ = env.reset(seed=seed + episode)
             bar.update()
     env.close()
     stacked = {key: np.stack([r[key] for r in records]) for key in records[0]}
-    return ExpertData(stacked, np.stack(masks), np.asarray(actions, np.int64), episode, agreed / steps)
+    returns = discounted_returns(np.asarray(rewards), np.asarray(ends), gamma)
+    return ExpertData(
+        stacked, np.stack(masks), np.asarray(actions, np.int64), returns, episode, agreed / steps
+    )
+
+
+def discounted_returns(rewards: np.ndarray, ends: np.ndarray, gamma: float) -> np.ndarray:
+    """Per step, the discounted sum of the rewards to the end of its episode (``ends`` marks each
+    episode's last step; the last step of the arrays ends one too)."""
+    returns = np.empty(len(rewards), np.float32)
+    running = 0.0
+    for k in range(len(rewards) - 1, -1, -1):
+        running = rewards[k] + gamma * running * (not ends[k])
+        returns[k] = running
+    return returns
 
 
 def clone(
     model: MaskablePPO, data: ExpertData, settings: ImitationSettings, seed: int, progress: bool = False
 ) -> list[dict[str, float]]:
-    """Fit the model's policy to the expert's actions (masked log-likelihood); the value head is left
-    as it is.
+    """Fit the model's policy to the expert's actions (masked log-likelihood) and, with
+    ``settings.value_coef``, its value head to the returns.
 
-    :return: per epoch, the mean negative log-likelihood and the share of actions the policy's most
-        likely action matches
+    :return: per epoch, the mean negative log-likelihood, the share of actions the policy's most
+        likely action matches and the value's mean squared error
     """
     policy = model.policy
     optimizer = th.optim.Adam(policy.parameters(), lr=settings.learning_rate)
@@ -178,24 +248,88 @@ def clone(
     with new_bar(total=settings.epochs * n, enabled=progress, desc="cloning") as bar:
         for _ in range(settings.epochs):
             order = rng.permutation(n)
-            nll = matched = 0.0
+            totals = np.zeros(3)
             for start in range(0, n, settings.batch_size):
                 rows = order[start : start + settings.batch_size]
-                obs = {
-                    key: th.as_tensor(value[rows], device=policy.device) for key, value in data.obs.items()
-                }
-                actions = th.as_tensor(data.actions[rows], device=policy.device)
-                distribution = policy.get_distribution(obs, action_masks=data.masks[rows])
-                loss = -distribution.log_prob(actions).mean()
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                nll += float(loss.detach()) * len(rows)
-                matched += float((distribution.mode() == actions).sum())
+                totals += cloning_step(model, data, rows, optimizer, settings.value_coef) * len(rows)
                 bar.update(len(rows))
-            history.append({"nll": nll / n, "accuracy": matched / n})
+            history.append(dict(zip(("nll", "accuracy", "value_mse"), (totals / n).tolist(), strict=True)))
     policy.set_training_mode(False)
     return history
+
+
+def cloning_step(
+    model: MaskablePPO, data: ExpertData, rows: np.ndarray, optimizer: th.optim.Optimizer, value_coef: float
+) -> np.ndarray:
+    """One gradient step of the cloning loss on the data set's ``rows``.
+
+    :return: the batch's mean negative log-likelihood, action match and value squared error
+    """
+    policy = model.policy
+    obs = {key: th.as_tensor(value[rows], device=policy.device) for key, value in data.obs.items()}
+    actions = th.as_tensor(data.actions[rows], device=policy.device)
+    # evaluate_actions' forward, keeping the distribution for the action match
+    latent_pi, latent_vf = policy.mlp_extractor(policy.extract_features(obs))
+    distribution = policy._get_action_dist_from_latent(latent_pi)
+    distribution.apply_masking(data.masks[rows])
+    values, log_prob = policy.value_net(latent_vf), distribution.log_prob(actions)
+    value_error = th.nn.functional.mse_loss(
+        values.flatten(), th.as_tensor(data.returns[rows], device=policy.device)
+    )
+    nll = -log_prob.mean()
+    loss = nll + value_coef * value_error if value_coef > 0 else nll
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    matched = (distribution.mode() == actions).float().mean()
+    return np.array([float(nll.detach()), float(matched), float(value_error.detach())])
+
+
+class BehaviourCloningCallback(BaseCallback):
+    """After every PPO update, ``settings.bc_steps`` cloning steps (:func:`cloning_step`) on the expert's
+    data set with PPO's own optimiser, at PPO's current learning rate.
+
+    :param data: the data set of the cloning (expert and DAgger steps)
+    :param settings: the imitation settings (``bc_steps``, ``batch_size``, ``value_coef``)
+    :param seed: seed of the batch draws
+    """
+
+    def __init__(self, data: ExpertData, settings: ImitationSettings, seed: int, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.data = data
+        self.settings = settings
+        self.rng = np.random.default_rng(seed)
+        self.updates_seen = 0
+
+    @property
+    def ppo(self) -> MaskablePPO:
+        """The model being trained."""
+        assert isinstance(self.model, MaskablePPO)
+        return self.model
+
+    def _on_training_start(self) -> None:
+        self.updates_seen = self.model._n_updates
+
+    def _on_rollout_start(self) -> None:
+        # Rollouts start right after the previous update (none before the first).
+        if self.model._n_updates == self.updates_seen:
+            return
+        self.updates_seen = self.model._n_updates
+        if self.settings.bc_steps == 0:
+            return
+        policy = self.model.policy
+        policy.set_training_mode(True)
+        totals = np.zeros(3)
+        for _ in range(self.settings.bc_steps):
+            rows = self.rng.integers(len(self.data.actions), size=self.settings.batch_size)
+            totals += cloning_step(self.ppo, self.data, rows, policy.optimizer, self.settings.value_coef)
+        policy.set_training_mode(False)
+        means = totals / self.settings.bc_steps
+        for name, value in zip(("bc_nll", "bc_accuracy", "bc_value_mse"), means, strict=True):
+            self.logger.record(f"imitation/{name}", value)
+
+    def _on_step(self) -> bool:
+        return True
 
 
 def imitate(
@@ -204,16 +338,18 @@ def imitate(
     settings: ImitationSettings,
     seed: int,
     progress: bool = False,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], ExpertData]:
     """Clone the expert into ``model``'s policy, then run the DAgger rounds.
 
     Round k's episodes are seeded from ``seed + k * DAGGER_SEED_STRIDE``, apart from the expert's.
 
-    :return: the record written to ``imitation.json``: the settings, the expert's episodes, the first
+    :return: the record written to ``imitation.json`` (the settings, the expert's episodes, the first
         fit per epoch and, per DAgger round, the episodes driven, the share of the visited steps where
-        the policy already chose the expert's action, the data set's size and the fit per epoch
+        the policy already chose the expert's action, the data set's size and the fit per epoch) and
+        the data set
     """
-    data = collect_expert(world, settings.expert_steps, seed, progress, settings.expert)
+    gamma = float(model.gamma)
+    data = collect_expert(world, settings.expert_steps, seed, progress, settings.expert, gamma=gamma)
     record: dict[str, Any] = {
         "settings": settings.to_dict(),
         "expert_episodes": data.episodes,
@@ -228,6 +364,7 @@ def imitate(
             progress,
             settings.expert,
             driver=policy_driver(model),
+            gamma=gamma,
         )
         data = data + visited
         record["dagger"].append(
@@ -238,4 +375,4 @@ def imitate(
                 "epochs": clone(model, data, settings, seed + k, progress),
             }
         )
-    return record
+    return record, data

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch as th
 import yaml
 from sb3_contrib import MaskablePPO
@@ -41,7 +42,7 @@ from sb3_gccp.hyperparams import (
     resolve_policy_kwargs,
     resolve_schedule,
 )
-from sb3_gccp.imitation import ImitationSettings, imitate
+from sb3_gccp.imitation import BehaviourCloningCallback, ExpertData, ImitationSettings, imitate
 from sb3_gccp.progress import StepBar
 
 PLANNER_ENV_ID = "GCCPPlanner-v0"
@@ -87,10 +88,11 @@ def train_planner(request: StageRequest) -> Path:
     """Train the motion-planner with MaskablePPO on ``GCCPPlanner-v0``; return the model path.
 
     With an ``imitation`` map in the entry, the policy first clones a scripted expert planner, with
-    DAgger rounds if asked (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well), and PPO
-    continues from there for ``n_timesteps`` (0: cloning only). With ``request.resume`` (a run
-    folder), training continues from its last checkpoint with the run's own resolved config, up to the
-    same total budget.
+    DAgger rounds if asked (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well, and the
+    clone is saved as ``planner_cloned.zip``), and PPO continues from there for ``n_timesteps`` (0:
+    cloning only), with cloning steps between its updates if ``imitation.bc_steps`` asks. With
+    ``request.resume`` (a run folder), training continues from its last checkpoint with the run's own
+    resolved config, up to the same total budget.
     """
     if request.torch_threads is not None:
         th.set_num_threads(request.torch_threads)
@@ -105,14 +107,15 @@ def train_planner(request: StageRequest) -> Path:
     model = make_model(
         env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(ppo_settings, n_timesteps)
     )
-    if imitation is not None and checkpoint is None:
-        record = imitate(model, world, imitation, seed, request.progress_bar)
-        (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")
     callbacks: list[BaseCallback] = [
         CheckpointCallback(
             max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
         )
     ]
+    if imitation is not None:
+        data = imitation_data(model, run_dir, world, imitation, seed, checkpoint, request.progress_bar)
+        if imitation.bc_steps > 0:
+            callbacks.append(BehaviourCloningCallback(data, imitation, seed))
     if request.progress_bar:
         callbacks.append(StepBar(n_timesteps))
     if request.max_episodes is not None:
@@ -132,6 +135,38 @@ def train_planner(request: StageRequest) -> Path:
     path = run_dir / "planner.zip"
     model.save(path)
     return path
+
+
+CLONED_PLANNER = "planner_cloned.zip"
+"""The planner as cloned, before PPO, in the run folder of a planner stage with ``imitation``."""
+IMITATION_DATA = "imitation_data.npz"
+"""The cloning's data set in the run folder (the behaviour-cloning term of PPO reads it on resume)."""
+
+
+def imitation_data(
+    model: MaskablePPO,
+    run_dir: Path,
+    world: IntersectionConfig,
+    settings: ImitationSettings,
+    seed: int,
+    checkpoint: Path | None,
+    progress: bool,
+) -> ExpertData:
+    """A new run clones the expert into ``model`` (writing ``imitation.json``, the cloned planner and,
+    if PPO keeps a cloning term, the data set); a resumed one reads the data set back."""
+    path = run_dir / IMITATION_DATA
+    if checkpoint is not None:
+        if settings.bc_steps == 0:
+            return ExpertData({}, np.empty(0), np.empty(0), np.empty(0), 0)
+        if not path.is_file():
+            raise HyperparamsError(f"cannot resume the cloning term: {path} is missing")
+        return ExpertData.load(path)
+    record, data = imitate(model, world, settings, seed, progress)
+    (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")
+    model.save(run_dir / CLONED_PLANNER)
+    if settings.bc_steps > 0:
+        data.save(path)
+    return data
 
 
 IMITATION_KEY = "imitation"

@@ -17,7 +17,14 @@ from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
-from sb3_gccp.imitation import ImitationSettings, clone, collect_expert
+from sb3_gccp.imitation import (
+    BehaviourCloningCallback,
+    ExpertData,
+    ImitationSettings,
+    clone,
+    collect_expert,
+    discounted_returns,
+)
 
 WORLD = IntersectionConfig(spawn_probability=0.0, warmup_time=0.0, duration=4.0)
 
@@ -52,10 +59,81 @@ def test_cloning_makes_the_policy_choose_the_experts_actions():
     assert history[-1]["accuracy"] > most_common + 0.15 > history[0]["accuracy"] + 0.15
 
 
+def test_returns_are_discounted_to_the_end_of_each_episode():
+    rewards = np.array([1.0, 1.0, 1.0, 2.0, 2.0])
+    ends = np.array([False, False, True, False, False])
+    np.testing.assert_allclose(discounted_returns(rewards, ends, 0.5), [1.75, 1.5, 1.0, 3.0, 2.0], rtol=1e-6)
+
+
+def test_expert_data_carry_the_driven_episodes_returns_and_survive_a_save(tmp_path):
+    data = collect_expert(WORLD, 50, seed=3, gamma=0.9)
+    rewards_sum_bound = 50 * (1.0 + 0.05 + 0.5 * np.pi)
+    assert data.returns.shape == (50,) and np.all(np.abs(data.returns) < rewards_sum_bound)
+    assert len(np.unique(data.returns)) > 10
+    data.save(tmp_path / "data.npz")
+    loaded = ExpertData.load(tmp_path / "data.npz")
+    for key, value in data.obs.items():
+        np.testing.assert_array_equal(loaded.obs[key], value)
+    np.testing.assert_array_equal(loaded.returns, data.returns)
+    assert (loaded.episodes, loaded.agreement) == (data.episodes, data.agreement)
+
+
+def test_cloning_with_a_value_weight_fits_the_value_head_to_the_returns():
+    data = collect_expert(WORLD, 200, seed=0)
+    env = gym.make("GCCPPlanner-v0", config=WORLD)
+    th.manual_seed(0)
+    model = MaskablePPO("MultiInputPolicy", env, policy_kwargs={"net_arch": [64]}, seed=0)
+    settings = ImitationSettings(epochs=30, batch_size=50, learning_rate=1e-3, value_coef=0.5)
+    history = clone(model, data, settings, seed=0)
+    assert history[-1]["value_mse"] < 0.2 * history[0]["value_mse"]
+
+
+def _nll(model: MaskablePPO, data: ExpertData) -> float:
+    obs = {key: th.as_tensor(value) for key, value in data.obs.items()}
+    with th.no_grad():
+        distribution = model.policy.get_distribution(obs, action_masks=data.masks)
+        return float(-distribution.log_prob(th.as_tensor(data.actions)).mean())
+
+
+def _ppo_with_cloning_term(data: ExpertData, bc_steps: int) -> tuple[MaskablePPO, list[tuple[int, int]]]:
+    env = gym.make("GCCPPlanner-v0", config=WORLD)
+    model = MaskablePPO(
+        "MultiInputPolicy",
+        env,
+        n_steps=32,
+        batch_size=32,
+        n_epochs=1,
+        policy_kwargs={"net_arch": [32]},
+        seed=0,
+    )
+    callback = BehaviourCloningCallback(data, ImitationSettings(batch_size=50, bc_steps=bc_steps), seed=0)
+    seen = []
+    original = callback._on_rollout_start
+
+    def spied() -> None:
+        original()
+        seen.append((model._n_updates, callback.updates_seen))
+
+    callback._on_rollout_start = spied  # type: ignore[method-assign]
+    model.learn(96, callback=callback)
+    return model, seen
+
+
+def test_the_cloning_term_steps_after_each_ppo_update_and_pulls_towards_the_expert():
+    data = collect_expert(WORLD, 100, seed=0)
+    cloned, seen = _ppo_with_cloning_term(data, bc_steps=20)
+    # three rollouts: the first before any update, then one after each update
+    assert seen == [(0, 0), (1, 1), (2, 2)]
+    plain, _ = _ppo_with_cloning_term(data, bc_steps=0)
+    assert _nll(cloned, data) < _nll(plain, data) - 0.1
+
+
 @pytest.mark.parametrize(
     ("values", "message"),
     [
         ({"epochs": 0}, "imitation.epochs must be a positive integer"),
+        ({"value_coef": -0.1}, "imitation.value_coef must be a non-negative number"),
+        ({"bc_steps": -1}, "imitation.bc_steps must be a non-negative integer, got -1"),
         ({"learning_rate": -1.0}, "imitation.learning_rate must be a positive number"),
         ({"expert_step": 10}, "expert_step"),
         ({"expert": "human"}, "imitation.expert must be one of scripted, search, got 'human'"),
@@ -140,3 +218,27 @@ def test_zero_ppo_steps_without_imitation_and_a_bad_imitation_key_are_one_line_e
     result = _train(tmp_path, {**entry, "imitation": {"epoch": 1}})
     assert result.returncode == 2
     assert "epoch" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_the_default_planner_recipe_clones_then_trains_ppo_with_a_cloning_term():
+    from sb3_gccp.hyperparams import default_config_file, load_hyperparams
+
+    entry = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPPlanner-v0")
+    settings = ImitationSettings.from_dict(entry["imitation"])
+    assert entry["n_timesteps"] >= 100_000 and settings.expert == "search"
+    assert settings.bc_steps > 0 and settings.value_coef > 0
+
+
+def test_planner_stage_saves_the_clone_and_ppo_moves_away_from_it(tmp_path):
+    entry = {
+        **TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"],
+        "imitation": {"expert_steps": 40, "epochs": 1, "batch_size": 20, "value_coef": 0.5, "bc_steps": 2},
+    }
+    result = _train(tmp_path, entry)
+    assert result.returncode == 0, result.stderr
+    (run,) = (tmp_path / "runs" / "planner").iterdir()
+    cloned, trained = MaskablePPO.load(run / "planner_cloned.zip"), MaskablePPO.load(run / "planner.zip")
+    assert cloned.num_timesteps == 0 and trained.num_timesteps >= 32
+    before, after = cloned.policy.state_dict(), trained.policy.state_dict()
+    assert any(not th.equal(before[name], after[name]) for name in before)
+    assert len(ExpertData.load(run / "imitation_data.npz").actions) == 40

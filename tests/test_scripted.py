@@ -11,6 +11,7 @@ from helpers import path_pose, place_ego, place_ego_on_path
 
 from gccp_envs.action import EgoAction
 from gccp_envs.config import IntersectionConfig
+from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
 
 PLANNER = ScriptedPlanner(IntersectionConfig())
@@ -188,6 +189,32 @@ def test_search_planner_rollout_is_the_egos_kinematics():
 )
 def test_search_planner_actions(goal, speed, action):
     assert SEARCH(planner_obs(goal, speed)) == action
+
+
+@pytest.mark.parametrize("goal", [(2.0, 0.0, 0.0), (2.5, 0.5, 0.1), (1.0, -4.0, 0.3)])
+def test_search_planner_brakes_for_a_goal_within_half_a_spacing_ahead_or_out_of_reach(goal):
+    assert SEARCH(planner_obs(goal, 8.0)) == EgoAction.SLOW_DOWN
+    assert (
+        SearchPlanner(IntersectionConfig(), hold_distance=0.0)(planner_obs(goal, 8.0)) != EgoAction.SLOW_DOWN
+    )
+
+
+def test_search_planner_holding_where_braking_is_masked_turns_and_stays_on_the_road():
+    mask = np.ones(6, bool)
+    mask[EgoAction.SLOW_DOWN] = False
+    assert mask[SEARCH(planner_obs((1.0, 0.0, 0.0), 6.0), mask)]
+
+
+def test_search_planner_stops_where_it_is_held_on_an_empty_road():
+    env = GCCPPlannerEnv(spawn_probability=0.0, hold_probability=1.0, hold_continue=1.0)
+    stopped = 0
+    for seed in range(6):
+        obs, _ = env.reset(seed=seed, options={"task": ("left", "straight", "right")[seed % 3]})
+        for _ in range(40):
+            obs, _, terminated, truncated, _ = env.step(SEARCH(obs, env.action_masks()))
+            assert not (terminated or truncated)
+        stopped += env.world.ego.speed < 0.5
+    assert stopped == 6
 
 
 def test_search_planner_respects_the_mask():
