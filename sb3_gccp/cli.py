@@ -209,7 +209,7 @@ def _evaluation_target(args: argparse.Namespace) -> tuple[Any, Any, str]:
         env, policy, name = load_baseline(folder, overrides)
         return env, policy, f"baseline {name} {args.model}"
     mask = parse_assignments(args.mask, "--mask")
-    hierarchy = load_hierarchy(args.model, mask)
+    hierarchy = load_hierarchy(args.model, mask, args.allow_overrides)
     decider = hierarchy.decider_policy(deterministic=not args.stochastic)
     check = "".join(f", {key}={value}" for key, value in mask.items())
     return (
@@ -244,7 +244,7 @@ def _video(args: argparse.Namespace) -> None:
         raise CLIError("--fps must be positive")
     try:
         check_video_path(args.out)
-        hierarchy = load_hierarchy(args.model, parse_assignments(args.mask, "--mask"))
+        hierarchy = load_hierarchy(args.model, parse_assignments(args.mask, "--mask"), args.allow_overrides)
         env = hierarchy.make_env(parse_assignments(args.set))
         decider = hierarchy.decider_policy()
     except (ValueError, TypeError, OSError) as err:
@@ -370,6 +370,15 @@ def add_mask_overrides(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_allow_overrides(parser: argparse.ArgumentParser) -> None:
+    """``--allow-overrides``: run a hierarchy whose ``hierarchy.yml`` has an ``overrides`` section."""
+    parser.add_argument(
+        "--allow-overrides",
+        action="store_true",
+        help="run the overrides section of hierarchy.yml (settings the decider was not trained with)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``sb3_gccp``."""
     parser = argparse.ArgumentParser(prog="sb3_gccp", description=__doc__.splitlines()[0])
@@ -458,6 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_world_overrides(evaluate)
     add_mask_overrides(evaluate)
+    add_allow_overrides(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
     video = sub.add_parser("video", help="write a GIF or MP4 of one episode of a trained hierarchy")
@@ -473,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     video.add_argument("--fps", type=float, default=10.0, help="frames per second (10: real time)")
     add_world_overrides(video)
     add_mask_overrides(video)
+    add_allow_overrides(video)
     video.set_defaults(func=_video)
 
     reproduce = sub.add_parser(

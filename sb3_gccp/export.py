@@ -7,8 +7,9 @@ SB3 ``.zip`` files lose their optimisers' moment estimates on the way (Adam's ``
 training resumed from an exported model restarts those estimates (a run's ``checkpoints/`` keep them).
 The run's records come along when present: command, config, episodes, evaluation, training curve.
 World config keys and GCCP check settings can be replaced on the way (``--set``, ``--mask``), so that the
-exported hierarchy runs, for example, another planner setting than it was trained with; ``hierarchy.yml``
-then holds the new values and the run's records the old ones.
+exported hierarchy runs, for example, another GCCP check than it was trained with; ``hierarchy.yml`` then
+lists them under ``overrides`` (settings the decider was not trained with), and evaluating it needs
+``--allow-overrides``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import yaml
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.baselines import BASELINE_FILE, read_baseline_spec
-from sb3_gccp.hierarchy import HIERARCHY_FILE, load_hierarchy
+from sb3_gccp.hierarchy import HIERARCHY_FILE, OVERRIDES, load_hierarchy, read_overrides
 from sb3_gccp.hyperparams import read_yaml_mapping
 
 RECORDS = (
@@ -112,15 +113,14 @@ def _hierarchy_files(
     run_dir: Path, world: Mapping[str, Any], mask: Mapping[str, Any]
 ) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a hierarchy's export, with the rewritten hierarchy.yml."""
-    hierarchy = load_hierarchy(run_dir, mask)
+    hierarchy = load_hierarchy(run_dir, mask, allow_overrides=True)
     spec = read_yaml_mapping(run_dir / HIERARCHY_FILE, "hierarchy file")
-    world_spec = spec.pop("world", None)
-    spec.update(mask)
-    if world_spec is not None:
-        spec["world"] = world_spec  # the check's settings before the world, as training writes them
-    if world:
-        spec["world"] = {**dict(spec.get("world") or {}), **world}
-        IntersectionConfig.from_dict(spec["world"])  # one-line ValueError on a bad key or value
+    old_world, old_mask = read_overrides(spec, str(run_dir / HIERARCHY_FILE))
+    overrides = {"world": {**old_world, **world}, "mask": {**old_mask, **mask}}
+    IntersectionConfig.from_dict({**dict(spec.get("world") or {}), **overrides["world"]})  # one-line errors
+    spec.pop(OVERRIDES, None)
+    if overrides["world"] or overrides["mask"]:
+        spec[OVERRIDES] = {key: value for key, value in overrides.items() if value}
     files: dict[str, Path | str] = {"decider.zip": hierarchy.decider}
     spec["decider"] = "decider.zip"
     if hierarchy.planner is not None:

@@ -12,6 +12,13 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     mask_yield_margin: null       # neighbours waiting for the ego checked where they stand, with this
                                   #   margin [m] (optional; null: along their prediction)
     world: {...}                  # the world config the decider was trained on
+    overrides:                    # optional: settings the decider was NOT trained with
+      world: {...}                #   world keys replacing those above
+      mask: {...}                 #   GCCP check settings replacing those above
+
+Every setting above ``overrides`` is one the decision-maker was trained with. A hierarchy with
+``overrides`` (written by ``sb3_gccp export --set/--mask``) runs only when asked explicitly
+(``allow_overrides``, the CLI's ``--allow-overrides``): a result it gives is not the trained system's.
 """
 
 from __future__ import annotations
@@ -48,6 +55,9 @@ class Hierarchy:
     mask_extrapolate_steps: int = 0
     mask_ego_deceleration: float | None = None
     mask_yield_margin: float | None = None
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+    """The ``overrides`` map of ``hierarchy.yml`` (applied: ``world`` and the mask settings above hold
+    the overridden values)."""
 
     def make_env(
         self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
@@ -102,11 +112,34 @@ def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, flo
     )
 
 
-def load_hierarchy(path: str | Path, mask: Mapping[str, Any] | None = None) -> Hierarchy:
+OVERRIDES = "overrides"
+"""The ``hierarchy.yml`` section of settings the decider was not trained with: ``world`` and ``mask``."""
+
+
+def read_overrides(spec: Mapping[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The world and GCCP check settings of a hierarchy spec's ``overrides`` (empty without one).
+
+    :raises ValueError: one line naming an unknown section or check key
+    """
+    overrides = spec.get(OVERRIDES) or {}
+    if not isinstance(overrides, Mapping) or set(overrides) - {"world", "mask"}:
+        raise ValueError(f"{where}: {OVERRIDES} must be a map with the keys world and mask")
+    world, mask = dict(overrides.get("world") or {}), dict(overrides.get("mask") or {})
+    unknown = sorted(set(mask) - set(MASK_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown GCCP check key(s) in {OVERRIDES}.mask: {', '.join(unknown)}")
+    return world, mask
+
+
+def load_hierarchy(
+    path: str | Path, mask: Mapping[str, Any] | None = None, allow_overrides: bool = False
+) -> Hierarchy:
     """Read a hierarchy from a run folder, ``pretrained/``, or a decider ``.zip`` inside one.
 
     :param mask: GCCP check settings (keys of ``MASK_KEYS``) replacing those of ``hierarchy.yml``, for
         example ``{"mask_margin": 0.5}`` to evaluate the trained decider under another check
+    :param allow_overrides: run the settings of an ``overrides`` section (which the decider was not
+        trained with); without it such a hierarchy is refused
     :raises ValueError: with a one-line reason when something is missing or a setting is bad
     """
     path = Path(path)
@@ -125,11 +158,18 @@ def load_hierarchy(path: str | Path, mask: Mapping[str, Any] | None = None) -> H
     unknown = sorted(set(mask or {}) - set(MASK_KEYS))
     if unknown:
         raise ValueError(f"unknown GCCP check key(s) {', '.join(unknown)}: expected {', '.join(MASK_KEYS)}")
-    if mask and predictor == "none":
+    world_overrides, mask_overrides = read_overrides(spec, str(spec_file))
+    if (world_overrides or mask_overrides) and not allow_overrides:
+        names = [f"world.{key}" for key in world_overrides] + [f"mask.{key}" for key in mask_overrides]
+        raise ValueError(
+            f"{spec_file} runs settings the decider was not trained with ({OVERRIDES}: {', '.join(names)}): "
+            "pass --allow-overrides to run them"
+        )
+    if (mask or mask_overrides) and predictor == "none":
         raise ValueError(f"{folder} has no GCCP module (predictor: none): there is no check to set")
     settings = _mask_settings(spec, str(spec_file))
-    if mask:
-        settings = _mask_settings({**spec, **mask}, "GCCP check")
+    if mask or mask_overrides:
+        settings = _mask_settings({**spec, **mask_overrides, **(mask or {})}, "GCCP check")
     decider = path if path.is_file() else folder / str(spec.get("decider", "decider.zip"))
     name = str(spec.get("planner", "planner.zip"))
     planner = None if name == SCRIPTED else folder / name
@@ -142,6 +182,7 @@ def load_hierarchy(path: str | Path, mask: Mapping[str, Any] | None = None) -> H
         planner,
         predictor,
         weights,
-        dict(spec.get("world") or {}),
+        {**dict(spec.get("world") or {}), **world_overrides},
         *settings,
+        {"world": world_overrides, "mask": mask_overrides} if world_overrides or mask_overrides else {},
     )

@@ -15,19 +15,37 @@ PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
 HIERARCHY = "seeds/seed1"  # a shipped hierarchy run as trained
 
 
-def test_export_writes_the_replaced_settings_and_keeps_the_rest(tmp_path):
+def test_export_lists_replaced_settings_as_overrides_and_keeps_what_was_trained(tmp_path):
     source = PRETRAINED / HIERARCHY
     export_run(source, tmp_path / "out", {"scripted_turn_speed": 4.0}, {"mask_yield_margin": 0.5})
     before = yaml.safe_load((source / "hierarchy.yml").read_text())
     after = yaml.safe_load((tmp_path / "out" / "hierarchy.yml").read_text())
-    assert after["mask_yield_margin"] == 0.5 and after["world"]["scripted_turn_speed"] == 4.0
-    assert list(after)[-1] == "world"  # the check's settings stay before the world
-    assert {k: v for k, v in after["world"].items() if k != "scripted_turn_speed"} == {
-        k: v for k, v in before["world"].items() if k != "scripted_turn_speed"
-    }
-    hierarchy = load_hierarchy(tmp_path / "out")
+    assert after["world"] == before["world"] and after.get("mask_yield_margin") == before.get(
+        "mask_yield_margin"
+    )
+    assert after["overrides"] == {"world": {"scripted_turn_speed": 4.0}, "mask": {"mask_yield_margin": 0.5}}
+    hierarchy = load_hierarchy(tmp_path / "out", allow_overrides=True)
     assert hierarchy.mask_yield_margin == 0.5 and hierarchy.mask_margin == before["mask_margin"]
     assert hierarchy.make_env().config.scripted_turn_speed == 4.0
+    # exporting again adds to the overrides
+    export_run(tmp_path / "out", tmp_path / "again", {"duration": 20.0}, {})
+    again = yaml.safe_load((tmp_path / "again" / "hierarchy.yml").read_text())
+    assert again["overrides"]["world"] == {"scripted_turn_speed": 4.0, "duration": 20.0}
+
+
+def test_a_hierarchy_with_overrides_runs_only_when_asked(tmp_path, capsys):
+    export_run(PRETRAINED / HIERARCHY, tmp_path / "out", {}, {"mask_margin": 0.5})
+    with pytest.raises(ValueError, match=r"not trained with \(overrides: mask.mask_margin\)"):
+        load_hierarchy(tmp_path / "out")
+    args = ["evaluate", "--model", str(tmp_path / "out"), "--episodes-per-task", "1", "--no-progress"]
+    assert main(args) == 2
+    assert "--allow-overrides" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert main([*args, "--allow-overrides", "--set", "duration=2"]) == 0
+
+
+def test_a_hierarchy_as_trained_has_no_overrides():
+    hierarchy = load_hierarchy(PRETRAINED / HIERARCHY)
+    assert hierarchy.overrides == {}
 
 
 @pytest.mark.parametrize(
