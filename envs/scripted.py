@@ -69,6 +69,8 @@ class ScriptedPlanner:
         return int(EgoAction.SLOW_DOWN)
 
 
+HOLD_SPEED_COST = 0.2
+"""Steps of later arrival [1/(m/s)] the search planner trades for each m/s less at the end on a hold."""
 ROLLOUT_CACHE_SIZE = 512
 """Rollouts the search planner keeps, by speed."""
 BOX_HALF_LENGTH = 2.5
@@ -103,11 +105,11 @@ class SearchPlanner:
     ) -> None:
         self.config = config
         self.horizon = horizon
-        self.hold_distance = config.subgoal_spacing / 2.0 + 0.1 if hold_distance is None else hold_distance
-        """A goal at most this far ahead [m] is a hold (the lattice point nearest the ego lies at most
-        half a spacing along its route): brake and stand on it rather than drive through it, and where
-        it lies on another lane out of reach, brake rather than swerve towards it. 0: only goals behind,
-        or reached, mean braking."""
+        self.hold_distance = config.subgoal_reach_radius if hold_distance is None else hold_distance
+        """A goal on the ego's lane at most this far ahead [m] is a hold (a subgoal drawn to drive to lies
+        farther: ``GCCPPlanner-v0`` draws them beyond the reach radius): of the sequences that reach it
+        soonest, take the one that ends slowest, so that the car stands on it rather than drives
+        through it. 0: only goals behind, or reached, mean braking."""
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
         self.motion = EgoMotion(config)
@@ -196,11 +198,7 @@ class SearchPlanner:
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
         allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
-        stop = (
-            (gx < 0.5 and distance < 3.0)
-            or (distance <= self.radius and abs(gh) <= self.heading)
-            or (gx <= self.hold_distance and abs(gy) <= self.radius)
-        )
+        stop = (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading)
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
         poses, pixels, inside = self._cached(speed)
@@ -226,16 +224,18 @@ class SearchPlanner:
         if not (hit & usable[:, None]).any():
             hit = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
         reached = hit.any(1)
-        if gx <= self.hold_distance and not (reached & usable).any():
-            return self._slowest_on_road(poses, np.all(on_road, axis=1), obs["goal"], allowed)
-        # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
-        lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
+        arrival = hit.argmax(1)
         steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
         speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
+        if gx <= self.hold_distance and abs(gy) <= self.radius and (reached & usable).any():
+            # A hold on the ego's lane: of the sequences that reach it soonest, the one that ends slowest.
+            cost = np.where(reached & usable, arrival + HOLD_SPEED_COST * speed_after[:, -1], np.inf)
+            return int(first[np.argmin(cost)])
+        # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
+        lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
         slack = 1.0 - speed_after / cfg.cruise_speed
         line = lateral + 3.0 * turn[:, -1] + 4.0 * slack[:, -1] + 100.0 * ~before_off[:, -1]
         # Soonest arrival; between equally soon ones, the faster (it needs less to go on).
-        arrival = hit.argmax(1)
         cost = np.where(
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
