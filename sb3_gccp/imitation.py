@@ -20,7 +20,7 @@ adds the demonstrations' likelihood to the policy gradient.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +67,9 @@ class ImitationSettings:
     (``epochs`` passes), so that it learns to recover from its own mistakes. 0: behaviour cloning only."""
     dagger_steps: int = 20_000
     """Planner-env steps the cloned policy drives in each DAgger round."""
+    dagger_epochs: int | None = None
+    """Passes over the aggregated data set in each DAgger round (the policy starts from the last fit,
+    so fewer than ``epochs`` may do); None: ``epochs``."""
     value_coef: float = 0.0
     """Weight of the value head's squared error to the driven episodes' discounted returns (PPO's
     ``gamma``) in the cloning loss. 0: the value head is left as it is."""
@@ -79,6 +82,8 @@ class ImitationSettings:
             raise ValueError(f"imitation.expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
         for name in ("expert_steps", "epochs", "batch_size", "dagger_steps"):
             require_int(f"imitation.{name}", getattr(self, name))
+        if self.dagger_epochs is not None:
+            require_int("imitation.dagger_epochs", self.dagger_epochs)
         require_int("imitation.dagger_rounds", self.dagger_rounds, minimum=0)
         require_int("imitation.bc_steps", self.bc_steps, minimum=0)
         require_positive("imitation.learning_rate", self.learning_rate)
@@ -356,6 +361,7 @@ def imitate(
         "epochs": clone(model, data, settings, seed, progress),
         "dagger": [],
     }
+    dagger_fit = replace(settings, epochs=settings.dagger_epochs or settings.epochs)
     for k in range(1, settings.dagger_rounds + 1):
         visited = collect_expert(
             world,
@@ -372,7 +378,7 @@ def imitate(
                 "episodes": visited.episodes,
                 "policy_agreed": visited.agreement,
                 "data_steps": len(data.actions),
-                "epochs": clone(model, data, settings, seed + k, progress),
+                "epochs": clone(model, data, dagger_fit, seed + k, progress),
             }
         )
     return record, data

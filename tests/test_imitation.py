@@ -139,6 +139,7 @@ def test_the_cloning_term_steps_after_each_ppo_update_and_pulls_towards_the_expe
         ({"expert": "human"}, "imitation.expert must be one of scripted, search, got 'human'"),
         ({"dagger_rounds": -1}, "imitation.dagger_rounds must be a non-negative integer, got -1"),
         ({"dagger_steps": 0}, "imitation.dagger_steps must be a positive integer, got 0"),
+        ({"dagger_epochs": 0}, "imitation.dagger_epochs must be a positive integer, got 0"),
         ([1, 2], "imitation must be a map"),
     ],
 )
@@ -185,6 +186,7 @@ def test_dagger_rounds_let_the_policy_drive_and_the_expert_label(tmp_path):
             "batch_size": 20,
             "dagger_rounds": 2,
             "dagger_steps": 20,
+            "dagger_epochs": 3,
         },
     }
     result = _train(tmp_path, entry)
@@ -192,7 +194,7 @@ def test_dagger_rounds_let_the_policy_drive_and_the_expert_label(tmp_path):
     (run,) = (tmp_path / "runs" / "planner").iterdir()
     record = json.loads((run / "imitation.json").read_text())
     assert [r["data_steps"] for r in record["dagger"]] == [50, 70]
-    assert all(0.0 <= r["policy_agreed"] <= 1.0 and len(r["epochs"]) == 1 for r in record["dagger"])
+    assert all(0.0 <= r["policy_agreed"] <= 1.0 and len(r["epochs"]) == 3 for r in record["dagger"])
 
 
 def test_dagger_data_are_the_drivers_states_with_the_experts_actions():
