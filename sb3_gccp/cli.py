@@ -419,7 +419,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="continue a run from its last checkpoint (default: the newest run)",
     )
     train.add_argument("--save-freq", type=int, default=10_000, help="env steps between checkpoints")
-    train.add_argument("--torch-threads", type=int, help="torch threads of the learner")
+    train.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help="torch threads of the learner (default 1: the env workers need the other cores, and the "
+        "recipe in zoo_configs/ was run with 1)",
+    )
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
     train.add_argument(
