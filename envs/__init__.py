@@ -11,10 +11,16 @@ from gymnasium.envs.registration import register, registry
 
 from gccp_envs.config import DT, TASKS, IntersectionConfig
 
+PLANNER_ENV_ID = "GCCPPlanner-v0"
+"""The motion-planner's env: ego actions towards a subgoal."""
+DECIDER_ENV_ID = "GCCPDecider-v0"
+"""The decision-maker's option env: a subgoal index, then T_m steps of a planner."""
+FLAT_ENV_ID = "GCCPFlat-v0"
+"""The flat baselines' env: ego actions towards the task goal."""
 ENV_IDS = {
-    "GCCPPlanner-v0": "gccp_envs.planner_env:GCCPPlannerEnv",
-    "GCCPDecider-v0": "gccp_envs.option_env:GCCPDeciderEnv",
-    "GCCPFlat-v0": "gccp_envs.flat_env:GCCPFlatEnv",
+    PLANNER_ENV_ID: "gccp_envs.planner_env:GCCPPlannerEnv",
+    DECIDER_ENV_ID: "gccp_envs.option_env:GCCPDeciderEnv",
+    FLAT_ENV_ID: "gccp_envs.flat_env:GCCPFlatEnv",
 }
 
 for _env_id, _entry_point in ENV_IDS.items():
@@ -22,4 +28,4 @@ for _env_id, _entry_point in ENV_IDS.items():
         # Episodes end by the env's own time limit (config ``duration``).
         register(id=_env_id, entry_point=_entry_point, disable_env_checker=True)
 
-__all__ = ["DT", "ENV_IDS", "TASKS", "IntersectionConfig"]
+__all__ = ["DECIDER_ENV_ID", "DT", "ENV_IDS", "FLAT_ENV_ID", "PLANNER_ENV_ID", "TASKS", "IntersectionConfig"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -19,15 +19,33 @@ DT = 0.1
 """Seconds per policy step and per simulation step: the paper's actions are reached in 0.1 s."""
 
 
-def reject_unknown_keys(values: Mapping[str, Any], config_class: type, what: str) -> None:
+def parse_tasks(text: str) -> list[str]:
+    """Comma-separated task names (``left,right``), validated.
+
+    :raises ValueError: one line naming the unknown tasks
+    """
+    tasks = [t.strip() for t in text.split(",") if t.strip()]
+    unknown = [t for t in tasks if t not in TASKS]
+    if unknown or not tasks:
+        raise ValueError(
+            f"unknown task(s) {', '.join(map(repr, unknown)) or '(none)'}: expected a "
+            f"comma-separated subset of {','.join(TASKS)}"
+        )
+    return tasks
+
+
+def reject_unknown_keys(
+    values: Mapping[str, Any], config_class: type, what: str, known: Collection[str] | None = None
+) -> None:
     """Raise ``ValueError`` naming every key of ``values`` that is not a field of ``config_class``.
 
     :param values: candidate field values (for example a YAML map)
     :param config_class: a dataclass
     :param what: what the keys configure, for the message ("intersection config")
+    :param known: the keys its YAML form takes, when they are not its field names
     :raises ValueError: one line listing the unknown keys, each with its closest field name if any
     """
-    known = {f.name for f in fields(config_class)}
+    known = {f.name for f in fields(config_class)} if known is None else set(known)
     unknown = sorted(set(values) - known)
     if unknown:
         hints = [

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gccp_envs.config import DT, TASKS, IntersectionConfig, require_int, require_positive
+from gccp_envs.config import DT, TASKS, IntersectionConfig, parse_tasks, require_int, require_positive
 
 
 def test_paper_constants():
@@ -122,3 +122,12 @@ def test_require_int_and_positive_accept_good_values():
 def test_require_positive_rejects(value):
     with pytest.raises(ValueError, match=f"^x must be a positive number, got {value!r}$"):
         require_positive("x", value)
+
+
+def test_parse_tasks_reads_a_comma_separated_subset_in_one_line_errors():
+    assert parse_tasks(" left, right") == ["left", "right"]
+    assert parse_tasks(",".join(TASKS)) == list(TASKS)
+    with pytest.raises(ValueError, match=r"^unknown task\(s\) 'up': expected a comma-separated subset"):
+        parse_tasks("left,up")
+    with pytest.raises(ValueError, match=r"^unknown task\(s\) \(none\)"):
+        parse_tasks(" , ")
