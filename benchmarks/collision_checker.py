@@ -14,7 +14,7 @@ import fcl
 import numpy as np
 
 from gccp_envs.geometry import poses_overlap
-from sb3_gccp.collision import CollisionChecker
+from sb3_gccp.gccp.collision import CollisionChecker
 
 
 def fcl_box(pose: np.ndarray, length: float, width: float) -> fcl.CollisionObject:

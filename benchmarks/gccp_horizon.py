@@ -18,9 +18,10 @@ import torch as th
 from gccp_envs.config import TASKS
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
-from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.evaluation import evaluate, summarize
-from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, load_predictor
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, load_predictor
+from sb3_gccp.gccp.settings import GCCPCheck
 
 # (predictor, extrapolated steps, margin [m])
 MASKS = (
@@ -50,7 +51,7 @@ def main() -> None:
         if name == "learned" and not args.predictor:
             continue
         predictor = ConstantVelocityPredictor() if name == "cv" else load_predictor(args.predictor)
-        mask = GCCPMask(predictor, CollisionChecker(margin=margin), extrapolate_steps=steps)
+        mask = GCCPMask(predictor, GCCPCheck(margin=margin, extrapolate_steps=steps))
         env = GCCPDeciderEnv(planner=None, mask_fn=mask)
         start = time.perf_counter()
         results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes_per_task, args.seed, False)

@@ -3,7 +3,7 @@
 Decider observations come from random rollouts of ``GCCPDecider-v0`` (scripted planner, uniform
 random subgoals). Each observation is timed once per repetition after a warm-up; the median is over
 all timings. The predictor is untrained unless ``--predictor`` names a file saved by
-``sb3_gccp.prediction.save_predictor`` (its weights do not change the cost). Observations without
+``sb3_gccp.gccp.predictor.save_predictor`` (its weights do not change the cost). Observations without
 any neighbour skip the prediction (nothing can collide), so the medians are given over the
 observations with at least one neighbour as well as over all of them.
 
@@ -23,7 +23,8 @@ import torch as th
 from torch import nn
 
 import sb3_gccp  # noqa: F401  (registers the environments)
-from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, TrajectoryPredictor, load_predictor
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, TrajectoryPredictor, load_predictor
 
 Obs = dict[str, np.ndarray]
 

@@ -27,6 +27,7 @@ import argparse
 from dataclasses import replace
 
 import numpy as np
+import torch as th
 from tqdm import tqdm
 
 import sb3_gccp  # noqa: F401  (registers the environments)
@@ -38,7 +39,7 @@ from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import FrozenPolicy
-from sb3_gccp.imitation import EXPERTS
+from sb3_gccp.training.imitation import EXPERTS
 
 LANE_CHANGE_OFFSET = 3.0
 """A subgoal at least this far [m] to the side of the ego when drawn needs a lane change."""
@@ -174,6 +175,7 @@ def main() -> None:
         help="also search every drawn subgoal's action sequences: the reach no planner can beat",
     )
     args = parser.parse_args()
+    th.set_num_threads(1)
     planner: Planner = (
         EXPERTS[args.model](IntersectionConfig()) if args.model in EXPERTS else FrozenPolicy(args.model)
     )

@@ -25,9 +25,8 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from gccp_envs.config import DT
+from gccp_envs.config import DT, parse_tasks
 from gccp_envs.traffic import VEHICLE_LENGTH
-from sb3_gccp.cli import CLIError, parse_tasks
 from sb3_gccp.evaluation import run_episode
 from sb3_gccp.hierarchy import load_hierarchy
 
@@ -72,7 +71,7 @@ def main() -> None:
     try:
         tasks = parse_tasks(args.tasks)
         hierarchy = load_hierarchy(args.model)
-    except (CLIError, ValueError, OSError) as err:
+    except (ValueError, OSError) as err:
         parser.error(str(err))
     th.set_num_threads(1)
     env, policy = hierarchy.make_env(), hierarchy.decider_policy()

@@ -27,10 +27,9 @@ from gymnasium.utils import seeding
 from tqdm import tqdm
 
 from gccp_envs.action import EgoAction
-from gccp_envs.config import DT, TASKS, IntersectionConfig
+from gccp_envs.config import DT, TASKS, IntersectionConfig, parse_tasks
 from gccp_envs.traffic import VEHICLE_LENGTH
 from gccp_envs.world import EGO_ARM, IntersectionWorld
-from sb3_gccp.cli import CLIError, parse_tasks
 
 HEAD_OF_QUEUE = VEHICLE_LENGTH + 2.0
 """A car whose front is within this distance [m] of its stop line leaves no room for the ego ahead of it."""
@@ -85,7 +84,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         tasks = parse_tasks(args.tasks)
-    except CLIError as err:
+    except ValueError as err:
         parser.error(str(err))
     if args.episodes_per_task < 1:
         parser.error("--episodes-per-task must be positive")

@@ -1,10 +1,11 @@
 """``GCCPDecider-v0``: the decision-maker's option env (paper III-D, r^d, Algorithm 1).
 
 The action is a subgoal index. The env runs a motion-planner towards that subgoal for T_m steps
-(fewer if the episode ends) and returns the decision-maker's reward. The planner is any callable, or
-a trained MaskablePPO ``.zip`` given as ``planner_path`` (loaded once per process, called with a
-direct torch forward). ``action_masks()`` asks a mask
-function (the GCCP module) which subgoals are safe; without one, or while masks are off, all are.
+(fewer if the episode ends) and returns the decision-maker's reward. The planner is any callable of
+(observation, action mask) to an ego action: the scripted pure-pursuit planner by default, or a
+trained one that the agent package passes in (``sb3_gccp`` wraps its frozen MaskablePPO planner so).
+``action_masks()`` asks a mask function (the GCCP module) which subgoals are safe; without one, or
+while masks are off, all are.
 Each step's ``info`` carries what the predictor's replay buffer needs, as raw features (never
 normalised): the observation the decision was made from (``decision_obs``), the chosen subgoal in
 its ego frame (``subgoal``) and the ground-truth future of the decision (``future``, ``future_mask``:
@@ -16,7 +17,6 @@ called after every planner step of an option, to follow the world at 0.1 s (e.g.
 from __future__ import annotations
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,7 +40,6 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
     """Option env whose action is one of the N subgoal candidates.
 
     :param planner: the motion-planner run for each option; default :class:`ScriptedPlanner`
-    :param planner_path: a trained motion-planner (MaskablePPO ``.zip``) instead of ``planner``
     :param mask_fn: the subgoal mask (GCCP); default none (every subgoal allowed)
     """
 
@@ -48,19 +47,10 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self,
         *args: Any,
         planner: Planner | None = None,
-        planner_path: str | Path | None = None,
         mask_fn: MaskFunction | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
-        if planner is not None and planner_path is not None:
-            raise ValueError("give either planner or planner_path, not both")
-        if planner_path is not None:
-            if not Path(planner_path).is_file():
-                raise FileNotFoundError(f"planner not found: {planner_path}")
-            from sb3_gccp.frozen import load_frozen_policy
-
-            planner = load_frozen_policy(str(Path(planner_path).resolve()))
         n = self.config.num_subgoals
         self.action_space = spaces.Discrete(n)
         self.observation_space = spaces.Dict(

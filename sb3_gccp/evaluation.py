@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass
 import gymnasium as gym
 import numpy as np
 
+from gccp_envs.config import TASKS
 from sb3_gccp.progress import new_bar
 
 Policy = Callable[[dict[str, np.ndarray], np.ndarray], int]
@@ -90,7 +91,7 @@ def summarize(results: list[EpisodeResult]) -> dict[str, dict[str, float]]:
 
     'overall' is the mean over tasks, as in the paper's tables.
     """
-    tasks = sorted({r.task for r in results}, key=["left", "straight", "right"].index)
+    tasks = sorted({r.task for r in results}, key=TASKS.index)
     table: dict[str, dict[str, float]] = {}
     keys = ("success", "crashed", "offroad", "wrong_exit", "timeout")
     for task in tasks:

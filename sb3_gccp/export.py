@@ -14,6 +14,7 @@ lists them under ``overrides`` (settings the decider was not trained with), and 
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import shutil
 import zipfile
@@ -24,20 +25,35 @@ from typing import Any
 import torch as th
 import yaml
 
-from gccp_envs.config import IntersectionConfig
-from sb3_gccp.baselines import BASELINE_FILE, read_baseline_spec
-from sb3_gccp.hierarchy import HIERARCHY_FILE, OVERRIDES, load_hierarchy, read_overrides
-from sb3_gccp.hyperparams import read_yaml_mapping
+from sb3_gccp.constants import (
+    ARGS_FILE,
+    BASELINE_FILE,
+    COMMAND_FILE,
+    CONFIG_FILE,
+    DECIDER_FILE,
+    EPISODES_FILE,
+    EVALUATION_FILE,
+    HIERARCHY_FILE,
+    METRICS_FILE,
+    MODEL_FILE,
+    PLANNER_FILE,
+    PREDICTOR_FILE,
+    SCRIPTED,
+    TRAINING_CURVE_FILE,
+    TRAINING_FILE,
+)
+from sb3_gccp.hierarchy import Hierarchy
+from sb3_gccp.training.baselines import read_baseline_spec
 
 RECORDS = (
-    "command.txt",
-    "args.yml",
-    "config.yml",
-    "episodes.csv",
-    "metrics.json",
-    "training.json",
-    "evaluation.json",
-    "training_curve.png",
+    COMMAND_FILE,
+    ARGS_FILE,
+    CONFIG_FILE,
+    EPISODES_FILE,
+    METRICS_FILE,
+    TRAINING_FILE,
+    EVALUATION_FILE,
+    TRAINING_CURVE_FILE,
 )
 """Files of a run folder copied along when present."""
 
@@ -68,7 +84,7 @@ def export_run(
     """Export a hierarchy or baseline run folder into a new folder; return the files written.
 
     :param world: world config keys replacing those of a hierarchy's ``hierarchy.yml``
-    :param mask: GCCP check settings (``MASK_KEYS``) replacing those of a hierarchy's ``hierarchy.yml``
+    :param mask: GCCP check settings (``mask_*`` keys) replacing those of a hierarchy's ``hierarchy.yml``
     :raises ValueError: not a run folder, ``out_dir`` exists and is not empty (nothing is overwritten), a
         bad replacement, or replacements for a baseline
     """
@@ -106,28 +122,24 @@ def export_run(
 def _baseline_files(run_dir: Path) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a baseline's export, with the rewritten baseline.yml."""
     name, model = read_baseline_spec(run_dir)
-    return {"model.zip": model, BASELINE_FILE: yaml.safe_dump({"algorithm": name, "model": "model.zip"})}
+    return {MODEL_FILE: model, BASELINE_FILE: yaml.safe_dump({"algorithm": name, "model": MODEL_FILE})}
 
 
 def _hierarchy_files(
     run_dir: Path, world: Mapping[str, Any], mask: Mapping[str, Any]
 ) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a hierarchy's export, with the rewritten hierarchy.yml."""
-    hierarchy = load_hierarchy(run_dir, mask, allow_overrides=True)
-    spec = read_yaml_mapping(run_dir / HIERARCHY_FILE, "hierarchy file")
-    old_world, old_mask = read_overrides(spec, str(run_dir / HIERARCHY_FILE))
-    overrides = {"world": {**old_world, **world}, "mask": {**old_mask, **mask}}
-    IntersectionConfig.from_dict({**dict(spec.get("world") or {}), **overrides["world"]})  # one-line errors
-    spec.pop(OVERRIDES, None)
-    if overrides["world"] or overrides["mask"]:
-        spec[OVERRIDES] = {key: value for key, value in overrides.items() if value}
-    files: dict[str, Path | str] = {"decider.zip": hierarchy.decider}
-    spec["decider"] = "decider.zip"
+    hierarchy = Hierarchy.read(run_dir).with_overrides(world, mask)
+    files: dict[str, Path | str] = {DECIDER_FILE: hierarchy.decider}
     if hierarchy.planner is not None:
-        files["planner.zip"] = hierarchy.planner
-        spec["planner"] = "planner.zip"
+        files[PLANNER_FILE] = hierarchy.planner
     if hierarchy.predictor_weights is not None:
-        files["predictor.pt"] = hierarchy.predictor_weights
-        spec["predictor_weights"] = "predictor.pt"
-    files[HIERARCHY_FILE] = yaml.safe_dump(spec, sort_keys=False)
+        files[PREDICTOR_FILE] = hierarchy.predictor_weights
+    exported = dataclasses.replace(
+        hierarchy,
+        decider_file=DECIDER_FILE,
+        planner_file=SCRIPTED if hierarchy.planner is None else PLANNER_FILE,
+        predictor_weights_file=None if hierarchy.predictor_weights is None else PREDICTOR_FILE,
+    )
+    files[HIERARCHY_FILE] = exported.to_yaml()
     return files

@@ -2,7 +2,8 @@
 
 ``policy.predict()`` copies and checks its input on every call (about 250 us); inside an option env
 the motion-planner runs every 0.1 s step, so the frozen planner calls the policy's forward directly
-under ``torch.inference_mode()`` (about 40 us for a small network).
+under ``torch.inference_mode()`` (about 40 us for a small network). Loading one leaves torch's thread
+count alone: the entry point that owns the process sets it (one thread suits these small networks).
 """
 
 from __future__ import annotations
@@ -20,12 +21,9 @@ class FrozenPolicy:
 
     :param path: the saved model
     :param deterministic: take the most likely action (default) or sample
-    :param threads: torch threads to use in this process (one per env worker is best)
     """
 
-    def __init__(self, path: str | Path, deterministic: bool = True, threads: int | None = 1) -> None:
-        if threads is not None:
-            th.set_num_threads(threads)
+    def __init__(self, path: str | Path, deterministic: bool = True) -> None:
         self.model = MaskablePPO.load(path, device="cpu")
         self.policy = self.model.policy
         self.policy.set_training_mode(False)
@@ -42,8 +40,6 @@ class FrozenPolicy:
 
 @functools.lru_cache(maxsize=8)
 def load_frozen_policy(path: str, deterministic: bool = True) -> FrozenPolicy:
-    """A :class:`FrozenPolicy` loaded once per process and path (the option env's planner).
-
-    Torch's thread count is left alone: env worker processes set their own.
-    """
-    return FrozenPolicy(path, deterministic=deterministic, threads=None)
+    """A :class:`FrozenPolicy` loaded once per process and path (the option env's planner in a vec-env
+    worker)."""
+    return FrozenPolicy(path, deterministic=deterministic)

@@ -6,11 +6,11 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     decider: decider.zip
     predictor: learned            # learned, no_goal, cv or none (w/o GCCP)
     predictor_weights: predictor.pt
-    mask_margin: 0.0              # GCCP collision check: box margin [m] and steps beyond T_f
-    mask_extrapolate_steps: 0     #   (both optional, 0 if absent)
-    mask_ego_deceleration: null   # the ego brakes in those steps [m/s^2] (optional; null: goes on)
-    mask_yield_margin: null       # neighbours waiting for the ego checked where they stand, with this
-                                  #   margin [m] (optional; null: along their prediction)
+    mask_margin: 0.0              # the GCCP collision check (GCCPCheck): box margin [m],
+    mask_extrapolate_steps: 0     #   steps beyond T_f,
+    mask_ego_deceleration: null   #   the ego braking in them [m/s^2] (null: it goes on),
+    mask_yield_margin: null       #   neighbours waiting for the ego checked where they stand, with this
+                                  #   margin [m] (null: along their prediction); each optional
     world: {...}                  # the world config the decider was trained on
     overrides:                    # optional: settings the decider was NOT trained with
       world: {...}                #   world keys replacing those above
@@ -19,50 +19,215 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
 Every setting above ``overrides`` is one the decision-maker was trained with. A hierarchy with
 ``overrides`` (written by ``sb3_gccp export --set/--mask``) runs only when asked explicitly
 (``allow_overrides``, the CLI's ``--allow-overrides``): a result it gives is not the trained system's.
+:class:`Hierarchy` is the one reader and writer of this file.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gccp_envs.config import IntersectionConfig, require_int, require_non_negative, require_positive
-from gccp_envs.option_env import GCCPDeciderEnv
-from sb3_gccp.callbacks import LEARNED, PREDICTORS
-from sb3_gccp.collision import CollisionChecker
-from sb3_gccp.frozen import FrozenPolicy
-from sb3_gccp.hyperparams import read_yaml_mapping
-from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask, load_predictor
+import yaml
 
-HIERARCHY_FILE = "hierarchy.yml"
-SCRIPTED = "scripted"
-"""The planner name of a hierarchy whose options run the scripted planner (``gccp_envs.scripted``)."""
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.option_env import GCCPDeciderEnv
+from sb3_gccp.constants import DECIDER_FILE, HIERARCHY_FILE, PLANNER_FILE, SCRIPTED
+from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, load_predictor
+from sb3_gccp.gccp.settings import CHECK_KEYS, LEARNED, PREDICTORS, GCCPCheck
+from sb3_gccp.hyperparams import read_yaml_mapping
+
+OVERRIDES = "overrides"
+"""The ``hierarchy.yml`` section of settings the decider was not trained with: ``world`` and ``mask``."""
+CHECK_OVERRIDES = "GCCP check: "
+"""How messages name a GCCP check setting that replaces a trained one."""
+KEYS = ("planner", "decider", "predictor", "predictor_weights", *CHECK_KEYS, "world", OVERRIDES)
+"""The keys of ``hierarchy.yml``, in the order they are written."""
 
 
 @dataclass(frozen=True)
 class Hierarchy:
-    """The files of a trained hierarchy."""
+    """A trained hierarchy: what its ``hierarchy.yml`` says, and the folder its files are in.
 
-    decider: Path
-    planner: Path | None
-    """The planner ``.zip``; ``None`` for the scripted planner."""
-    predictor: str
-    predictor_weights: Path | None
-    world: Mapping[str, Any] = field(default_factory=dict)
-    mask_margin: float = 0.0
-    mask_extrapolate_steps: int = 0
-    mask_ego_deceleration: float | None = None
-    mask_yield_margin: float | None = None
-    overrides: Mapping[str, Any] = field(default_factory=dict)
-    """The ``overrides`` map of ``hierarchy.yml`` (applied: ``world`` and the mask settings above hold
-    the overridden values)."""
+    The file names are relative to ``folder``; :attr:`world` and :attr:`check` are the settings the
+    hierarchy runs with, the trained ones with the overrides applied.
+    """
 
+    folder: Path
+    """The folder of ``hierarchy.yml`` and of the files it names."""
+    decider_file: str = DECIDER_FILE
+    """The decision-maker (MaskablePPO ``.zip``)."""
+    planner_file: str = PLANNER_FILE
+    """The motion-planner (MaskablePPO ``.zip``), or ``scripted`` for the scripted planner."""
+    predictor: str = "none"
+    """The GCCP variant: learned, no_goal, cv or none (w/o GCCP)."""
+    predictor_weights_file: str | None = None
+    """The predictor's weights (learned variants)."""
+    trained_check: GCCPCheck = field(default_factory=GCCPCheck)
+    """The GCCP check the decider was trained with."""
+    trained_world: Mapping[str, Any] = field(default_factory=dict)
+    """The world config keys the decider was trained on."""
+    world_overrides: Mapping[str, Any] = field(default_factory=dict)
+    """World config keys the decider was not trained with, replacing ``trained_world``'s."""
+    mask_overrides: Mapping[str, Any] = field(default_factory=dict)
+    """GCCP check keys (``mask_*``) the decider was not trained with, replacing ``trained_check``'s."""
+
+    def __post_init__(self) -> None:
+        if self.mask_overrides and self.predictor == "none":
+            raise ValueError(f"{self.folder} has no GCCP module (predictor: none): there is no check to set")
+        if self.mask_overrides:
+            self.trained_check.replace(self.mask_overrides, CHECK_OVERRIDES)  # one line on a bad value
+
+    # --- the file ------------------------------------------------------------------------------
+    @classmethod
+    def read(cls, path: str | Path) -> Hierarchy:
+        """The hierarchy of a run folder, ``pretrained/``, or a decider ``.zip`` inside one (which then
+        takes the place of the file's decider).
+
+        :raises ValueError: with a one-line reason when something is missing or a setting is bad
+        """
+        path = Path(path)
+        if not path.exists():
+            raise ValueError(f"model not found: {path}")
+        folder = path.parent if path.is_file() else path
+        spec_file = folder / HIERARCHY_FILE
+        if not spec_file.is_file():
+            raise ValueError(
+                f"no {HIERARCHY_FILE} in {folder}: give a decider run folder or a decider .zip in one"
+            )
+        hierarchy = cls.from_dict(read_yaml_mapping(spec_file, "hierarchy file"), folder, str(spec_file))
+        if path.is_file():
+            hierarchy = dataclasses.replace(hierarchy, decider_file=path.name)
+        for needed in (hierarchy.decider, hierarchy.planner, hierarchy.predictor_weights):
+            if needed is not None and not needed.is_file():
+                raise ValueError(f"{spec_file} names a missing file: {needed}")
+        return hierarchy
+
+    @classmethod
+    def from_dict(cls, spec: Mapping[str, Any], folder: Path, where: str = HIERARCHY_FILE) -> Hierarchy:
+        """A hierarchy from the map of its ``hierarchy.yml`` (no file is looked at).
+
+        :param where: how messages name the file
+        :raises ValueError: one line naming an unknown key or section, or a bad setting
+        """
+        unknown = sorted(set(spec) - set(KEYS))
+        if unknown:
+            raise ValueError(f"{where}: unknown key(s) {', '.join(unknown)}: expected {', '.join(KEYS)}")
+        predictor = str(spec.get("predictor", "none"))
+        if predictor not in PREDICTORS:
+            raise ValueError(f"{where}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
+        overrides = spec.get(OVERRIDES) or {}
+        if not isinstance(overrides, Mapping) or set(overrides) - {"world", "mask"}:
+            raise ValueError(f"{where}: {OVERRIDES} must be a map with the keys world and mask")
+        world_overrides = dict(overrides.get("world") or {})
+        mask_overrides = dict(overrides.get("mask") or {})
+        unknown = sorted(set(mask_overrides) - set(CHECK_KEYS))
+        if unknown:
+            raise ValueError(f"{where}: unknown GCCP check key(s) in {OVERRIDES}.mask: {', '.join(unknown)}")
+        weights = spec.get("predictor_weights")
+        if predictor in LEARNED and weights is None:
+            raise ValueError(f"{where}: a {predictor} predictor needs predictor_weights")
+        check = GCCPCheck.from_dict({k: v for k, v in spec.items() if k in CHECK_KEYS}, f"{where}: ")
+        return cls(
+            folder,
+            str(spec.get("decider", DECIDER_FILE)),
+            str(spec.get("planner", PLANNER_FILE)),
+            predictor,
+            str(weights) if predictor in LEARNED else None,
+            check,
+            dict(spec.get("world") or {}),
+            world_overrides,
+            mask_overrides,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The map of ``hierarchy.yml`` (plain data; ``overrides`` only when there are some)."""
+        spec = {
+            "planner": self.planner_file,
+            "decider": self.decider_file,
+            "predictor": self.predictor,
+            "predictor_weights": self.predictor_weights_file,
+            **self.trained_check.to_dict(),
+            "world": _plain(self.trained_world),
+        }
+        if self.overrides:
+            spec[OVERRIDES] = self.overrides
+        return spec
+
+    def to_yaml(self) -> str:
+        """The text of ``hierarchy.yml``."""
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def write(self) -> Path:
+        """Write ``hierarchy.yml`` into the hierarchy's folder; return the file."""
+        path = self.folder / HIERARCHY_FILE
+        path.write_text(self.to_yaml())
+        return path
+
+    # --- the settings it runs with -------------------------------------------------------------
+    @property
+    def overrides(self) -> dict[str, Any]:
+        """The ``overrides`` section: its non-empty maps of ``world`` and ``mask`` keys."""
+        sections = {"world": _plain(self.world_overrides), "mask": dict(self.mask_overrides)}
+        return {name: values for name, values in sections.items() if values}
+
+    @property
+    def world(self) -> dict[str, Any]:
+        """The world config keys it runs on: the trained ones with the world overrides applied."""
+        return {**self.trained_world, **self.world_overrides}
+
+    @property
+    def check(self) -> GCCPCheck:
+        """The GCCP check it runs: the trained one with the mask overrides applied."""
+        if not self.mask_overrides:
+            return self.trained_check
+        return self.trained_check.replace(self.mask_overrides, CHECK_OVERRIDES)
+
+    def with_overrides(
+        self, world: Mapping[str, Any] | None = None, mask: Mapping[str, Any] | None = None
+    ) -> Hierarchy:
+        """This hierarchy with more settings it was not trained with (added to its ``overrides``).
+
+        :param world: world config keys
+        :param mask: GCCP check keys (``mask_*``)
+        :raises ValueError: one line naming an unknown key or a bad value
+        """
+        hierarchy = dataclasses.replace(
+            self,
+            world_overrides={**self.world_overrides, **(world or {})},
+            mask_overrides={**self.mask_overrides, **(mask or {})},
+        )
+        IntersectionConfig.from_dict(hierarchy.world)
+        return hierarchy
+
+    # --- its files -----------------------------------------------------------------------------
+    @property
+    def decider(self) -> Path:
+        """The decision-maker's ``.zip``."""
+        return self.folder / self.decider_file
+
+    @property
+    def planner(self) -> Path | None:
+        """The motion-planner's ``.zip``; ``None`` for the scripted planner."""
+        return None if self.planner_file == SCRIPTED else self.folder / self.planner_file
+
+    @property
+    def predictor_weights(self) -> Path | None:
+        """The predictor's weights (learned variants)."""
+        return None if self.predictor_weights_file is None else self.folder / self.predictor_weights_file
+
+    # --- what it runs --------------------------------------------------------------------------
     def make_env(
         self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
     ) -> GCCPDeciderEnv:
-        """The option env with the frozen planner and the GCCP mask, on the training world config."""
+        """The option env with the frozen planner and the GCCP mask, on the hierarchy's world config.
+
+        :param overrides: world config keys replacing the hierarchy's for this env only
+        """
         world = IntersectionConfig.from_dict({**self.world, **(overrides or {})})
         return GCCPDeciderEnv(
             world,
@@ -75,114 +240,37 @@ class Hierarchy:
         """The GCCP module of this hierarchy (``None`` without GCCP)."""
         if self.predictor == "none":
             return None
-        checker = CollisionChecker(margin=self.mask_margin)
-        extrapolation = (self.mask_extrapolate_steps, self.mask_ego_deceleration, self.mask_yield_margin)
         if self.predictor == "cv":
-            return GCCPMask(ConstantVelocityPredictor(), checker, *extrapolation)
+            return self.check.make_mask(ConstantVelocityPredictor())
         assert self.predictor_weights is not None
-        return GCCPMask(load_predictor(self.predictor_weights), checker, *extrapolation)
+        return self.check.make_mask(load_predictor(self.predictor_weights))
 
     def decider_policy(self, deterministic: bool = True) -> FrozenPolicy:
         """The decision-maker: its most likely subgoal, or (``deterministic=False``) one sampled."""
         return FrozenPolicy(self.decider, deterministic=deterministic)
 
 
-MASK_KEYS = ("mask_margin", "mask_extrapolate_steps", "mask_ego_deceleration", "mask_yield_margin")
-"""The keys of ``hierarchy.yml`` that set the GCCP collision check (``load_hierarchy``'s ``mask``)."""
-
-
-def _mask_settings(spec: Mapping[str, Any], where: str) -> tuple[float, int, float | None, float | None]:
-    """The GCCP check settings (``MASK_KEYS``, in order) of a hierarchy spec.
-
-    :raises ValueError: one line naming the key whose value is not of its kind
-    """
-    margin, steps = spec.get("mask_margin", 0.0), spec.get("mask_extrapolate_steps", 0)
-    deceleration, yield_margin = spec.get("mask_ego_deceleration"), spec.get("mask_yield_margin")
-    require_non_negative(f"{where}: mask_margin", margin)
-    if yield_margin is not None:
-        require_non_negative(f"{where}: mask_yield_margin", yield_margin)
-    require_int(f"{where}: mask_extrapolate_steps", steps, minimum=0)
-    if deceleration is not None:
-        require_positive(f"{where}: mask_ego_deceleration", deceleration)
-    return (
-        float(margin),
-        steps,
-        None if deceleration is None else float(deceleration),
-        None if yield_margin is None else float(yield_margin),
-    )
-
-
-OVERRIDES = "overrides"
-"""The ``hierarchy.yml`` section of settings the decider was not trained with: ``world`` and ``mask``."""
-
-
-def read_overrides(spec: Mapping[str, Any], where: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The world and GCCP check settings of a hierarchy spec's ``overrides`` (empty without one).
-
-    :raises ValueError: one line naming an unknown section or check key
-    """
-    overrides = spec.get(OVERRIDES) or {}
-    if not isinstance(overrides, Mapping) or set(overrides) - {"world", "mask"}:
-        raise ValueError(f"{where}: {OVERRIDES} must be a map with the keys world and mask")
-    world, mask = dict(overrides.get("world") or {}), dict(overrides.get("mask") or {})
-    unknown = sorted(set(mask) - set(MASK_KEYS))
-    if unknown:
-        raise ValueError(f"{where}: unknown GCCP check key(s) in {OVERRIDES}.mask: {', '.join(unknown)}")
-    return world, mask
-
-
 def load_hierarchy(
     path: str | Path, mask: Mapping[str, Any] | None = None, allow_overrides: bool = False
 ) -> Hierarchy:
-    """Read a hierarchy from a run folder, ``pretrained/``, or a decider ``.zip`` inside one.
+    """Read a hierarchy to run it, from a run folder, ``pretrained/``, or a decider ``.zip`` inside one.
 
-    :param mask: GCCP check settings (keys of ``MASK_KEYS``) replacing those of ``hierarchy.yml``, for
+    :param mask: GCCP check settings (``mask_*`` keys) replacing those of ``hierarchy.yml``, for
         example ``{"mask_margin": 0.5}`` to evaluate the trained decider under another check
     :param allow_overrides: run the settings of an ``overrides`` section (which the decider was not
         trained with); without it such a hierarchy is refused
     :raises ValueError: with a one-line reason when something is missing or a setting is bad
     """
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"model not found: {path}")
-    folder = path.parent if path.is_file() else path
-    spec_file = folder / HIERARCHY_FILE
-    if not spec_file.is_file():
+    hierarchy = Hierarchy.read(path)
+    if hierarchy.overrides and not allow_overrides:
+        names = [f"{section}.{key}" for section, values in hierarchy.overrides.items() for key in values]
         raise ValueError(
-            f"no {HIERARCHY_FILE} in {folder}: give a decider run folder or a decider .zip in one"
+            f"{hierarchy.folder / HIERARCHY_FILE} runs settings the decider was not trained with "
+            f"({OVERRIDES}: {', '.join(names)}): pass --allow-overrides to run them"
         )
-    spec = read_yaml_mapping(spec_file, "hierarchy file")
-    predictor = str(spec.get("predictor", "none"))
-    if predictor not in PREDICTORS:
-        raise ValueError(f"{spec_file}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
-    unknown = sorted(set(mask or {}) - set(MASK_KEYS))
-    if unknown:
-        raise ValueError(f"unknown GCCP check key(s) {', '.join(unknown)}: expected {', '.join(MASK_KEYS)}")
-    world_overrides, mask_overrides = read_overrides(spec, str(spec_file))
-    if (world_overrides or mask_overrides) and not allow_overrides:
-        names = [f"world.{key}" for key in world_overrides] + [f"mask.{key}" for key in mask_overrides]
-        raise ValueError(
-            f"{spec_file} runs settings the decider was not trained with ({OVERRIDES}: {', '.join(names)}): "
-            "pass --allow-overrides to run them"
-        )
-    if (mask or mask_overrides) and predictor == "none":
-        raise ValueError(f"{folder} has no GCCP module (predictor: none): there is no check to set")
-    settings = _mask_settings(spec, str(spec_file))
-    if mask or mask_overrides:
-        settings = _mask_settings({**spec, **mask_overrides, **(mask or {})}, "GCCP check")
-    decider = path if path.is_file() else folder / str(spec.get("decider", "decider.zip"))
-    name = str(spec.get("planner", "planner.zip"))
-    planner = None if name == SCRIPTED else folder / name
-    weights = folder / str(spec["predictor_weights"]) if predictor in LEARNED else None
-    for needed in (decider, planner, weights):
-        if needed is not None and not needed.is_file():
-            raise ValueError(f"{spec_file} names a missing file: {needed}")
-    return Hierarchy(
-        decider,
-        planner,
-        predictor,
-        weights,
-        {**dict(spec.get("world") or {}), **world_overrides},
-        *settings,
-        {"world": world_overrides, "mask": mask_overrides} if world_overrides or mask_overrides else {},
-    )
+    return hierarchy.with_overrides(mask=mask) if mask else hierarchy
+
+
+def _plain(values: Mapping[str, Any]) -> dict[str, Any]:
+    """A world config map as YAML takes it (tuples as lists)."""
+    return {key: list(value) if isinstance(value, tuple) else value for key, value in values.items()}

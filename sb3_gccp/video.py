@@ -24,7 +24,7 @@ from gccp_envs.geometry import FloatArray, from_frame
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.rendering import IntersectionRenderer
 from sb3_gccp.evaluation import Policy
-from sb3_gccp.prediction import GCCPMask
+from sb3_gccp.gccp.mask import GCCPMask
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 """File types :func:`write_video` writes, chosen by the file's extension."""

@@ -6,13 +6,9 @@ import pytest
 import yaml
 from helpers import TINY_ENCODER
 
-from sb3_gccp.baselines import (
-    MODEL_FILE,
-    REPLAY_BUFFER_FILE,
-    baseline_algorithm,
-    train_baseline,
-)
-from sb3_gccp.callbacks import read_episodes
+from sb3_gccp.constants import MODEL_FILE
+from sb3_gccp.training.baselines import REPLAY_BUFFER_FILE, baseline_algorithm, train_baseline
+from sb3_gccp.training.episodes import read_episodes
 
 
 @pytest.fixture()

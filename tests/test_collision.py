@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gccp_envs.geometry import poses_overlap
-from sb3_gccp.collision import COLLISION_LOGIT, CollisionChecker
+from sb3_gccp.gccp.collision import COLLISION_LOGIT, CollisionChecker
 
 coordinate = st.floats(-8.0, 8.0)
 angle = st.floats(-np.pi, np.pi)

@@ -14,7 +14,8 @@ from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.planner_env import GCCPPlannerEnv
-from sb3_gccp.hierarchy import load_hierarchy
+from sb3_gccp.gccp.settings import GCCPSettings
+from sb3_gccp.training.decider import training_metrics
 
 TINY_DECIDER = {
     "GCCPDecider-v0": {
@@ -189,70 +190,10 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
     assert "(GCCP: cv)" in result.stdout
 
 
-def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
-    (tmp_path / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv"}
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-    paper = load_hierarchy(tmp_path).mask_fn()
-    assert paper is not None and paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
-    spec.update(mask_margin=1.0, mask_extrapolate_steps=10)
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-    longer = load_hierarchy(tmp_path).mask_fn()
-    assert longer is not None and longer.checker.margin == 1.0 and longer.extrapolate_steps == 10
-    assert longer.ego_deceleration is None
-    spec.update(mask_ego_deceleration=4.0)
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-    braking = load_hierarchy(tmp_path).mask_fn()
-    assert braking is not None and braking.ego_deceleration == 4.0 and braking.yield_checker is None
-    spec.update(mask_yield_margin=0.5)
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-    held = load_hierarchy(tmp_path).mask_fn()
-    assert held is not None and held.yield_checker is not None and held.yield_checker.margin == 0.5
-    assert held.yield_checker.ego_size == (5.5, 2.5) and held.checker.ego_size == (6.0, 3.0)
-
-
-def _cv_hierarchy(folder: Path, **settings: object) -> None:
-    (folder / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv", **settings}
-    (folder / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-
-
-def test_mask_settings_given_at_load_replace_the_hierarchy_files(tmp_path):
-    _cv_hierarchy(tmp_path, mask_margin=1.0, mask_extrapolate_steps=10)
-    hierarchy = load_hierarchy(tmp_path, {"mask_margin": 0.5, "mask_ego_deceleration": 4})
-    mask = hierarchy.mask_fn()
-    assert mask is not None and mask.checker.margin == 0.5 and mask.extrapolate_steps == 10
-    assert mask.ego_deceleration == 4.0
-    assert load_hierarchy(tmp_path, {}).mask_margin == 1.0
-
-
-@pytest.mark.parametrize(
-    "settings, message",
-    [
-        ({"mask_margni": 1.0}, "unknown GCCP check key(s) mask_margni"),
-        ({"mask_margin": -1.0}, "mask_margin must be a non-negative number"),
-        ({"mask_margin": "wide"}, "mask_margin must be a non-negative number"),
-        ({"mask_extrapolate_steps": 2.5}, "mask_extrapolate_steps must be a non-negative integer"),
-        ({"mask_extrapolate_steps": True}, "mask_extrapolate_steps must be a non-negative integer"),
-        ({"mask_ego_deceleration": 0}, "mask_ego_deceleration must be a positive number"),
-        ({"mask_yield_margin": -0.5}, "mask_yield_margin must be a non-negative number"),
-    ],
-)
-def test_bad_mask_settings_are_rejected_in_one_line(tmp_path, settings, message):
-    _cv_hierarchy(tmp_path)
-    with pytest.raises(ValueError, match=r"^GCCP check: |^unknown") as given:
-        load_hierarchy(tmp_path, settings)
-    assert message in str(given.value) and "\n" not in str(given.value)
-    if "mask_margni" not in settings:  # the same value written in the file names the file
-        _cv_hierarchy(tmp_path, **settings)
-        with pytest.raises(ValueError, match="hierarchy.yml: " + message.split()[0]):
-            load_hierarchy(tmp_path)
-
-
-def test_mask_settings_need_a_gccp_module(tmp_path):
-    (tmp_path / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "none"}
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
-    assert load_hierarchy(tmp_path).mask_fn() is None
-    with pytest.raises(ValueError, match="no GCCP module"):
-        load_hierarchy(tmp_path, {"mask_margin": 0.5})
+def test_training_metrics_find_the_episode_where_success_passes_70_percent():
+    history = [{"success": int(k >= 150), "crashed": int(k < 150)} for k in range(300)]
+    metrics = training_metrics(history, GCCPSettings(), window=100)
+    # The rolling rate over the last 100 episodes reaches 0.7 when 70 of them succeeded: episode 220.
+    assert metrics["first_episode_success_70"] == 220
+    assert metrics["first_episode_success_90"] == 240
+    assert metrics["final_success_rate"] == 1.0 and metrics["final_collision_rate"] == 0.0

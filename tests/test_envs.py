@@ -39,6 +39,38 @@ def test_importing_sb3_gccp_registers_the_envs():
     assert result.returncode == 0, result.stderr
 
 
+BLOCK_THE_AGENT = """
+import importlib.abc, sys
+
+class Blocked(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("sb3_gccp", "torch"):
+            raise ImportError(f"the world imported {name}")
+        return None
+
+sys.meta_path.insert(0, Blocked())
+"""
+
+
+def test_the_world_needs_neither_the_agent_nor_torch():
+    code = BLOCK_THE_AGENT + (
+        "import gymnasium as gym, gccp_envs\n"
+        "import gccp_envs.rendering, gccp_envs.scripted\n"
+        "for env_id in gccp_envs.ENV_IDS:\n"
+        "    gym.make(env_id).reset(seed=0)\n"
+        "env = gym.make('GCCPDecider-v0', duration=1.0)\n"
+        "env.reset(seed=0)\n"
+        "env.step(0)\n"
+        "assert not any(m.split('.')[0] in ('sb3_gccp', 'torch') for m in sys.modules)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    blocked = subprocess.run(
+        [sys.executable, "-c", BLOCK_THE_AGENT + "import torch"], capture_output=True, text=True, timeout=60
+    )
+    assert "the world imported torch" in blocked.stderr  # the block itself works
+
+
 @pytest.mark.parametrize("env_id", ALL_ENVS)
 def test_gymnasium_env_checker(env_id):
     with warnings.catch_warnings(record=True) as caught:

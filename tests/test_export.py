@@ -25,7 +25,7 @@ def test_export_lists_replaced_settings_as_overrides_and_keeps_what_was_trained(
     )
     assert after["overrides"] == {"world": {"scripted_turn_speed": 4.0}, "mask": {"mask_yield_margin": 0.5}}
     hierarchy = load_hierarchy(tmp_path / "out", allow_overrides=True)
-    assert hierarchy.mask_yield_margin == 0.5 and hierarchy.mask_margin == before["mask_margin"]
+    assert hierarchy.check.yield_margin == 0.5 and hierarchy.check.margin == before["mask_margin"]
     assert hierarchy.make_env().config.scripted_turn_speed == 4.0
     # exporting again adds to the overrides
     export_run(tmp_path / "out", tmp_path / "again", {"duration": 20.0}, {})

@@ -2,27 +2,23 @@
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
-import pytest
 import torch as th
 from helpers import TINY_ENCODER
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from gccp_envs.option_env import GCCPDeciderEnv
-from sb3_gccp.callbacks import GCCPCallback, GCCPSettings
-from sb3_gccp.decider_stage import rolling_rate, training_metrics
-from sb3_gccp.policies import DecisionMakerPolicy
-from sb3_gccp.prediction import (
-    ConstantVelocityPredictor,
-    GCCPMask,
+from sb3_gccp.gccp.callback import GCCPCallback
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import (
     PredictorConfig,
     TrajectoryPredictor,
     current_poses,
 )
-from sb3_gccp.replay import EpisodeReplayBuffer
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer
+from sb3_gccp.gccp.settings import GCCPSettings
+from sb3_gccp.policies import DecisionMakerPolicy
 
 TINY_PREDICTOR = {"encoder": TINY_ENCODER, "decoder_hidden": 8}
 
@@ -133,52 +129,3 @@ def test_pushed_weights_change_the_workers_masks():
     nearest = np.argmin(np.hypot(*obs["subgoals"][:, :2].T))
     # Every subgoal is predicted to collide: the env's fallback allows only the nearest candidate.
     assert colliding.sum() == 1 and colliding[nearest]
-
-
-@pytest.mark.parametrize(
-    ("values", "message"),
-    [
-        ({"n_episode": 5}, "unknown gccp settings key(s): 'n_episode' (did you mean 'n_episodes'?)"),
-        ({"predictor": "magic"}, "gccp.predictor must be one of learned, no_goal, cv, none, got 'magic'"),
-        ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
-        ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
-        ({"mask_margin": -0.5}, "gccp.mask_margin must be a non-negative number, got -0.5"),
-        (
-            {"mask_extrapolate_steps": 1.5},
-            "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
-        ),
-        ({"mask_ego_deceleration": 0}, "gccp.mask_ego_deceleration must be a positive number, got 0"),
-        (
-            {"predictor_kwargs": {"decoder_width": 3}},
-            "unknown predictor config key(s): 'decoder_width' (did you mean 'decoder_hidden'?)",
-        ),
-    ],
-)
-def test_bad_settings_name_the_problem(values, message):
-    with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
-        GCCPSettings.from_dict(values)
-
-
-def test_settings_build_the_mask_with_their_margin_and_extrapolation():
-    mask = GCCPSettings(mask_margin=1.0, mask_extrapolate_steps=5).make_mask(ConstantVelocityPredictor())
-    assert mask.checker.margin == 1.0 and mask.checker.ego_size == (6.0, 3.0)
-    assert mask.extrapolate_steps == 5
-    paper = GCCPSettings().make_mask(ConstantVelocityPredictor())
-    assert paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
-    assert paper.ego_deceleration is None and mask.ego_deceleration is None
-    braking = GCCPSettings(mask_extrapolate_steps=5, mask_ego_deceleration=4.0)
-    assert braking.make_mask(ConstantVelocityPredictor()).ego_deceleration == 4.0
-    held = GCCPSettings(mask_margin=1.0, mask_yield_margin=0.5).make_mask(ConstantVelocityPredictor())
-    assert held.yield_checker is not None and held.yield_checker.margin == 0.5
-    with pytest.raises(ValueError, match=r"gccp\.mask_yield_margin must be a non-negative number"):
-        GCCPSettings(mask_yield_margin="wide")
-
-
-def test_rolling_rate_and_the_episode_where_success_passes_70_percent():
-    np.testing.assert_allclose(rolling_rate([1, 0, 1, 1], window=2), [1.0, 0.5, 0.5, 1.0])
-    history = [{"success": int(k >= 150), "crashed": int(k < 150)} for k in range(300)]
-    metrics = training_metrics(history, GCCPSettings(), window=100)
-    # The rolling rate over the last 100 episodes reaches 0.7 when 70 of them succeeded: episode 220.
-    assert metrics["first_episode_success_70"] == 220
-    assert metrics["first_episode_success_90"] == 240
-    assert metrics["final_success_rate"] == 1.0 and metrics["final_collision_rate"] == 0.0

@@ -17,7 +17,7 @@ from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
-from sb3_gccp.imitation import (
+from sb3_gccp.training.imitation import (
     BehaviourCloningCallback,
     ExpertData,
     ImitationSettings,

@@ -12,9 +12,9 @@ import pytest
 from sb3_contrib import MaskablePPO
 from test_policies import TINY_POLICY
 
+from sb3_gccp.gccp.predictor import load_predictor
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.policies import MotionPlannerPolicy
-from sb3_gccp.prediction import load_predictor
-from sb3_gccp.replay import EpisodeReplayBuffer
 
 
 def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:

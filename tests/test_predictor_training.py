@@ -9,9 +9,9 @@ import torch as th
 import torch.nn.functional as F
 from helpers import TINY_ENCODER as TINY
 
-from sb3_gccp.prediction import ConstantVelocityPredictor, PredictorConfig, TrajectoryPredictor
-from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors, loss_mask, prediction_loss
-from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions, to_torch
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, PredictorConfig, TrajectoryPredictor
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer, collect_decisions, to_torch
+from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors, loss_mask, prediction_loss
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions, to_torch
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer, collect_decisions, to_torch
 
 STATE = {
     "history": ((6, 10, 9), np.float32),

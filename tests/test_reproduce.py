@@ -15,17 +15,9 @@ from helpers import TINY_ENCODER
 
 from sb3_gccp.cli import main
 from sb3_gccp.hyperparams import default_config_file, load_hyperparams
-from sb3_gccp.reproduce import (
-    METHODS,
-    PRESETS,
-    TABLE_1,
-    TABLE_2,
-    aggregate,
-    format_results_table,
-    mask_after_episodes,
-    method_settings,
-    planner_settings,
-)
+from sb3_gccp.reproduce.methods import METHODS, TABLE_1, TABLE_2
+from sb3_gccp.reproduce.plan import PRESETS, mask_after_episodes, method_settings, planner_settings
+from sb3_gccp.reproduce.report import aggregate, format_results_table
 
 TINY = [
     "episodes=2",

@@ -21,7 +21,8 @@ from gccp_envs.rendering import (
 )
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.cli import main
-from sb3_gccp.prediction import ConstantVelocityPredictor, GCCPMask
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor
 from sb3_gccp.video import STOPPED, decision_overlay, record_episode, write_video
 
 TRAFFIC = {"spawn_probability": 0.15, "task": "left"}

@@ -1,4 +1,4 @@
-"""The GCCP module (paper III-C): goal-conditioned trajectory prediction and the subgoal mask.
+"""The GCCP trajectory predictors (paper III-C-1): goal-conditioned, and the ablations' ones.
 
 :class:`TrajectoryPredictor` is the paper's goal-conditioned trajectory predictor: the shared scene
 encoder (:class:`~sb3_gccp.networks.SceneEncoder`) gives each vehicle its concatenated 5L feature
@@ -14,8 +14,8 @@ rather than the layout of the scene; positions leave the decoder in units of the
 the decoder gives the correction to the constant-velocity displacement instead.
 
 :class:`ConstantVelocityPredictor` is the "w/ CV" ablation (IV-A-2) and ``goal_condition=False``
-the "w/o goal condition" one. :class:`GCCPMask` turns a predictor and the
-:class:`~sb3_gccp.collision.CollisionChecker` into the decider env's mask function.
+the "w/o goal condition" one. :class:`~sb3_gccp.gccp.mask.GCCPMask` turns a predictor into the decider
+env's mask function.
 """
 
 from __future__ import annotations
@@ -26,13 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch as th
 from torch import nn
 
 from gccp_envs.config import DT, IntersectionConfig, reject_unknown_keys, require_int
-from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH
-from sb3_gccp.collision import CollisionChecker
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
 
 STATE_KEYS = ("history", "history_mask", "routes", "routes_mask", "bev")
@@ -222,174 +219,6 @@ class ConstantVelocityPredictor(nn.Module):
         pose, speed = current_poses(obs)
         future = from_vehicle_frames(constant_velocity_displacement(speed, self.times), pose[:, :, None])
         return future[:, None].expand(goals.shape[0], goals.shape[1], *future.shape[1:])
-
-
-YIELD_SPEED = 0.5
-"""Below this speed [m/s] a neighbour counts as standing (for ``GCCPMask``'s ``yield_margin``)."""
-YIELD_REACH = 8.0
-"""How far [m] ahead of a standing neighbour's front the ego's box must reach for it to wait for the ego."""
-YIELD_LATERAL = 0.5
-"""... and how far [m] beyond its sides."""
-
-
-def latest_states(obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Each neighbour's pose (x, y, heading) in the ego frame, (N_s, 3), and speed, (N_s,), from its last
-    real history vector (zeros where absent); the numpy twin of :func:`current_poses` for one observation."""
-    history = np.asarray(obs["history"])[1:]
-    mask: np.ndarray = np.asarray(obs["history_mask"])[1:] > 0
-    real = np.asarray(mask.any(-1))
-    last = np.where(real, mask.shape[-1] - 1 - mask[:, ::-1].argmax(-1), 0)
-    state = np.asarray(history[np.arange(len(history)), last, 4:8], np.float64) * real[:, None]
-    return state[:, :3], state[:, 3]
-
-
-def yielding(obs: Mapping[str, np.ndarray]) -> np.ndarray:
-    """Which neighbours stand with a corner of the ego's box in their lane ahead (within
-    ``YIELD_LATERAL`` of their sides), within ``YIELD_REACH`` of their front: the traffic waits there for
-    the ego to clear its path.
-
-    :param obs: one decider observation
-    :return: (N_s,) bool
-    """
-    pose, speed = latest_states(obs)
-    half_length, half_width = VEHICLE_LENGTH / 2.0, VEHICLE_WIDTH / 2.0
-    # The ego's corners, at the origin of its frame, in each neighbour's frame.
-    corners = np.array([(a * half_length, b * half_width) for a in (1, -1) for b in (1, -1)])
-    c, s = np.cos(pose[:, 2:]), np.sin(pose[:, 2:])
-    dx, dy = corners[None, :, 0] - pose[:, :1], corners[None, :, 1] - pose[:, 1:2]
-    along, lateral = dx * c + dy * s, -dx * s + dy * c  # (N_s, 4)
-    ahead = (along > half_length) & (along < half_length + YIELD_REACH)
-    in_lane = np.abs(lateral) < half_width + YIELD_LATERAL
-    present = np.asarray(obs["history_mask"])[1:].any(-1)
-    return np.asarray(present & (speed < YIELD_SPEED) & (ahead & in_lane).any(-1))
-
-
-class GCCPMask:
-    """The GCCP module as the decider env's mask function: which subgoal candidates are safe (III-C-2).
-
-    For one decider observation it predicts the future of the ego and the neighbours under each of
-    the N candidates (one batched forward of the predictor) and lets the collision checker compare
-    the ego's future with every present neighbour's. Install it with the env's ``set_mask_fn``.
-
-    :param predictor: a :class:`TrajectoryPredictor`, :class:`ConstantVelocityPredictor` or any module
-        with their call signature
-    :param checker: the collision checker (default :class:`~sb3_gccp.collision.CollisionChecker`)
-    :param extrapolate_steps: check this many 0.1 s steps beyond the predicted T_f as well, every
-        vehicle going on at the speed and heading of its last predicted step (0: the paper)
-    :param ego_deceleration: in those steps the ego brakes at this deceleration [m/s^2] instead, to a
-        stop (it can always brake after its subgoal); ``None``: it goes on like the others
-    :param yield_margin: a neighbour that stands with the ego's box in its lane ahead (see
-        :func:`yielding`) waits for the ego, so it is checked where it stands, with this box margin [m],
-        instead of along its predicted future; ``None``: every neighbour along its prediction (the paper)
-    """
-
-    def __init__(
-        self,
-        predictor: nn.Module,
-        checker: CollisionChecker | None = None,
-        extrapolate_steps: int = 0,
-        ego_deceleration: float | None = None,
-        yield_margin: float | None = None,
-    ) -> None:
-        if extrapolate_steps < 0:
-            raise ValueError(f"extrapolate_steps must be non-negative, got {extrapolate_steps!r}")
-        if ego_deceleration is not None and ego_deceleration <= 0:
-            raise ValueError(f"ego_deceleration must be positive or None, got {ego_deceleration!r}")
-        if yield_margin is not None and yield_margin < 0:
-            raise ValueError(f"yield_margin must be non-negative or None, got {yield_margin!r}")
-        self.predictor = predictor.eval()
-        self.checker = checker or CollisionChecker()
-        self.extrapolate_steps = extrapolate_steps
-        self.ego_deceleration = ego_deceleration
-        self.yield_checker = None if yield_margin is None else self.checker.with_margin(yield_margin)
-
-    def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
-
-        :param obs: one decider observation (numpy, no batch axis) with the state arrays and ``subgoals``
-        :return: (N, V, T_f, 3) poses (x, y, heading) in the ego frame
-        """
-        tensors = {key: th.from_numpy(np.asarray(obs[key]))[None] for key in STATE_KEYS}
-        goals = th.from_numpy(np.asarray(obs["subgoals"], dtype=np.float32))[None]
-        with th.inference_mode():
-            return self.predictor(tensors, goals)[0].numpy()
-
-    def present(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Which neighbours (rows 1..N_s) exist in the observation.
-
-        :param obs: one decider observation
-        :return: (N_s,) bool
-        """
-        return np.asarray(np.asarray(obs["history_mask"])[1:].any(-1), dtype=bool)
-
-    def __call__(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
-        """The allowed subgoals of one decider observation.
-
-        :param obs: one decider observation (numpy, no batch axis)
-        :return: (N,) bool, True where the ego's predicted future collides with no neighbour's
-        """
-        present = self.present(obs)
-        if not present.any():  # nothing to collide with: skip the prediction
-            return np.ones(len(obs["subgoals"]), bool)
-        predicted = self.predict(obs)
-        future = extrapolate(predicted, self.extrapolate_steps)
-        if self.ego_deceleration is not None and self.extrapolate_steps:
-            future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
-        waiting = yielding(obs) & present if self.yield_checker is not None else np.zeros_like(present)
-        allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
-        if waiting.any():
-            assert self.yield_checker is not None
-            standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)
-            allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
-        return allowed
-
-
-def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
-    """Predicted poses followed by ``steps`` more, each vehicle keeping the displacement per step and
-    the heading of its last predicted step (the first step's displacement from the origin when T_f is 1).
-
-    :param future: (..., T_f, 3) poses (x, y, heading)
-    :param steps: extra steps
-    :return: (..., T_f + steps, 3)
-    """
-    if steps == 0:
-        return future
-    last, step = _last_step(future)
-    k = np.arange(1, steps + 1, dtype=future.dtype)[:, None]
-    return _append(future, last, last[..., :2] + k * step)
-
-
-def extrapolate_braking(future: np.ndarray, steps: int, deceleration: float) -> np.ndarray:
-    """Predicted poses followed by ``steps`` more of braking to a stop: from the speed of the last
-    predicted step (as in :func:`extrapolate`), along its direction, at ``deceleration``.
-
-    :param future: (..., T_f, 3) poses (x, y, heading)
-    :param steps: extra steps
-    :param deceleration: [m/s^2]
-    :return: (..., T_f + steps, 3)
-    """
-    if steps == 0:
-        return future
-    last, step = _last_step(future)
-    length = np.hypot(step[..., :1], step[..., 1:])  # (..., 1, 1)
-    speed = length / DT
-    t = np.arange(1, steps + 1, dtype=np.float64)[:, None] * DT
-    travelled = np.minimum(speed * t - 0.5 * deceleration * t**2, speed**2 / (2.0 * deceleration))
-    return _append(future, last, last[..., :2] + travelled * step / np.maximum(length, 1e-9))
-
-
-def _last_step(future: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The last predicted pose (..., 1, 3) and its displacement (..., 1, 2) from the one before (from the
-    origin when T_f is 1)."""
-    last = future[..., -1:, :]
-    previous = future[..., -2:-1, :] if future.shape[-2] > 1 else np.zeros_like(last)
-    return last, last[..., :2] - previous[..., :2]
-
-
-def _append(future: np.ndarray, last: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """``future`` followed by the positions ``xy`` (..., steps, 2), all at the heading of ``last``."""
-    heading = np.broadcast_to(last[..., 2:], (*xy.shape[:-1], 1))
-    return np.concatenate([future, np.concatenate([xy, heading], -1).astype(future.dtype)], axis=-2)
 
 
 def save_predictor(predictor: TrajectoryPredictor, path: str | Path) -> None:

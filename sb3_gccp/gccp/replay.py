@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from sb3_gccp.prediction import STATE_KEYS
+from sb3_gccp.gccp.predictor import STATE_KEYS
 from sb3_gccp.progress import new_bar
 
 MASK_KEYS = ("history_mask", "routes_mask")

@@ -16,7 +16,7 @@ import torch as th
 import torch.nn.functional as F
 from torch import nn
 
-from sb3_gccp.replay import EpisodeReplayBuffer, to_torch
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer, to_torch
 
 
 def prediction_loss(pred: th.Tensor, target: th.Tensor, present: th.Tensor) -> th.Tensor:
@@ -50,9 +50,9 @@ def loss_mask(batch: Mapping[str, th.Tensor]) -> th.Tensor:
 
 
 class PredictorTrainer:
-    """Trains a trajectory predictor from an :class:`~sb3_gccp.replay.EpisodeReplayBuffer` (Algorithm 1).
+    """Trains a trajectory predictor from an :class:`~sb3_gccp.gccp.replay.EpisodeReplayBuffer` (Algorithm 1).
 
-    :param predictor: a :class:`~sb3_gccp.prediction.TrajectoryPredictor`
+    :param predictor: a :class:`~sb3_gccp.gccp.predictor.TrajectoryPredictor`
     :param learning_rate: Adam's learning rate (paper: fixed 1e-4)
     :param batch_size: N_b, decisions per gradient step (paper: 64)
     :param steps_per_episode: K_p, gradient steps at the end of each episode (paper: 5)
@@ -119,7 +119,7 @@ def displacement_errors(
     (``neighbour_ade``, ``neighbour_fde``); nan where nothing counts.
 
     :param predictor: any predictor with the call signature of
-        :class:`~sb3_gccp.prediction.TrajectoryPredictor` (learned, no-goal or constant velocity)
+        :class:`~sb3_gccp.gccp.predictor.TrajectoryPredictor` (learned, no-goal or constant velocity)
     :param data: a replay buffer or arrays in its layout (state keys, ``subgoal``, ``future``,
         ``future_mask``)
     :param batch_size: decisions per forward pass

@@ -30,22 +30,21 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from tqdm.auto import tqdm
 
 from gccp_envs.config import DT, IntersectionConfig
-from sb3_gccp.callbacks import episode_row, read_episodes, write_episodes
+from sb3_gccp.constants import BASELINE_FILE, CONFIG_FILE, EPISODES_FILE, FLAT_ENV_ID, MODEL_FILE
 from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
 from sb3_gccp.progress import new_bar
-from sb3_gccp.stages import algorithm_kwargs, make_run_env
+from sb3_gccp.training.episodes import episode_row, read_episodes, write_episodes
+from sb3_gccp.training.run_folder import algorithm_kwargs, make_run_env
 
-FLAT_ENV_ID = "GCCPFlat-v0"
 BASELINES = {
     "dqn": "stable_baselines3.DQN",
     "ppo": "stable_baselines3.PPO",
     "sac_discrete": "sb3_gccp.sac_discrete.SACDiscrete",
 }
 """Baseline name (and zoo file ``<name>.yml``) -> its algorithm class, imported when first used."""
-MODEL_FILE = "model.zip"
-BASELINE_FILE = "baseline.yml"
 REPLAY_BUFFER_FILE = "replay_buffer.pkl"
+"""An off-policy baseline's replay buffer, in its checkpoint folder."""
 
 
 def baseline_algorithm(name: str) -> type[BaseAlgorithm]:
@@ -129,7 +128,7 @@ class EpisodeRecorder(BaseCallback):
             (folder / "replay_buffer.tmp.pkl").replace(folder / REPLAY_BUFFER_FILE)
         write_episodes(self.history, folder / "episodes.tmp.csv")
         (folder / "model.tmp.zip").replace(folder / MODEL_FILE)
-        (folder / "episodes.tmp.csv").replace(folder / "episodes.csv")  # last: marks the set complete
+        (folder / "episodes.tmp.csv").replace(folder / EPISODES_FILE)  # last: marks the set complete
 
     def _on_training_end(self) -> None:
         if self._bar is not None:
@@ -170,9 +169,9 @@ def train_baseline(
         raise ValueError(f"no checkpoint to resume in {run_dir}")
     if not resume:
         run_dir.mkdir(parents=True, exist_ok=False)
-        (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
+        (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(settings, sort_keys=True))
     env = make_run_env(FLAT_ENV_ID, n_envs, seed, world, run_dir)
-    history = read_episodes(checkpoints / "episodes.csv") if resume else []
+    history = read_episodes(checkpoints / EPISODES_FILE) if resume else []
     recorder = EpisodeRecorder(episodes, description, progress_bar, checkpoints, save_every_episodes, history)
     try:
         if resume:
@@ -192,13 +191,13 @@ def train_baseline(
         env.close()
     model.save(run_dir / MODEL_FILE)
     write_baseline_spec(run_dir, name)
-    write_episodes(recorder.history, run_dir / "episodes.csv")
+    write_episodes(recorder.history, run_dir / EPISODES_FILE)
     return run_dir / MODEL_FILE
 
 
 def has_checkpoint(run_dir: Path) -> bool:
     """Whether a baseline run folder holds a complete checkpoint to resume from."""
-    return (run_dir / "checkpoints" / "episodes.csv").is_file()
+    return (run_dir / "checkpoints" / EPISODES_FILE).is_file()
 
 
 def write_baseline_spec(run_dir: Path, name: str) -> None:
@@ -216,7 +215,7 @@ def read_baseline_spec(run_dir: Path) -> tuple[str, Path]:
     baseline_algorithm(name)
     if not model.is_file():
         raise ValueError(f"{run_dir / BASELINE_FILE} names a missing file: {model}")
-    if not (run_dir / "config.yml").is_file():
+    if not (run_dir / CONFIG_FILE).is_file():
         raise ValueError(f"no config.yml in {run_dir}")
     return name, model
 
@@ -229,7 +228,7 @@ def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tup
     :raises ValueError: with a one-line reason when something is missing
     """
     name, model = read_baseline_spec(run_dir)
-    settings = read_yaml_mapping(run_dir / "config.yml", "run config")
+    settings = read_yaml_mapping(run_dir / CONFIG_FILE, "run config")
     world = IntersectionConfig.from_dict({**(settings.get("env_kwargs") or {}), **(overrides or {})})
     return gym.make(FLAT_ENV_ID, config=world), baseline_policy(name, model), name
 

@@ -29,33 +29,48 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-import yaml
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-from sb3_gccp.callbacks import LEARNED, GCCPCallback, GCCPSettings, write_episodes
-from sb3_gccp.hierarchy import HIERARCHY_FILE, SCRIPTED
+from sb3_gccp.constants import (
+    DECIDER_ENV_ID,
+    DECIDER_FILE,
+    EPISODES_FILE,
+    METRICS_FILE,
+    PLANNER_FILE,
+    PREDICTOR_FILE,
+    SCRIPTED,
+    TRAINING_CURVE_FILE,
+)
+from sb3_gccp.frozen import load_frozen_policy
+from sb3_gccp.gccp.callback import BUFFER_FILE, STATE_FILE, GCCPCallback
+from sb3_gccp.gccp.predictor import load_predictor
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer
+from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
+from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.hyperparams import HyperparamsError, load_hyperparams
-from sb3_gccp.prediction import load_predictor
-from sb3_gccp.replay import EpisodeReplayBuffer
-from sb3_gccp.stages import (
+from sb3_gccp.training.episodes import rolling_rate, write_episodes
+from sb3_gccp.training.planner import train_planner
+from sb3_gccp.training.run_folder import (
     StageRequest,
     algorithm_kwargs,
     make_model,
     open_run,
     run_budget,
-    train_planner,
     write_run_files,
 )
 
-DECIDER_ENV_ID = "GCCPDecider-v0"
 
-
-def make_decider_env(torch_threads: int | None = None, **kwargs: Any) -> gym.Env:
-    """``GCCPDecider-v0`` for a vec-env worker; ``torch_threads`` limits torch in that process."""
+def make_decider_env(
+    planner_path: str | None = None, torch_threads: int | None = None, **kwargs: Any
+) -> gym.Env:
+    """``GCCPDecider-v0`` for a vec-env worker, its options run by the frozen planner ``planner_path``
+    (loaded once per process; None: the scripted planner); ``torch_threads`` limits torch in that
+    process."""
     if torch_threads is not None:
         th.set_num_threads(torch_threads)
-    return gym.make(DECIDER_ENV_ID, **kwargs)
+    planner = None if planner_path is None else load_frozen_policy(planner_path)
+    return gym.make(DECIDER_ENV_ID, planner=planner, **kwargs)
 
 
 def gccp_settings(settings: dict[str, Any]) -> GCCPSettings:
@@ -79,7 +94,7 @@ def train_decider(request: StageRequest) -> Path:
         raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
     run_dir, settings, seed = open_run(request, DECIDER_ENV_ID, "decider")
     if request.resume is not None:
-        scripted = not (run_dir / "planner.zip").is_file()
+        scripted = not (run_dir / PLANNER_FILE).is_file()
     gccp = gccp_settings(settings)
     world, n_timesteps, n_envs = run_budget(settings, own_keys=("gccp",))
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
@@ -87,7 +102,7 @@ def train_decider(request: StageRequest) -> Path:
         write_run_files(run_dir, settings, request)
         if not scripted:
             assert request.planner is not None
-            shutil.copyfile(request.planner, run_dir / "planner.zip")
+            shutil.copyfile(request.planner, run_dir / PLANNER_FILE)
 
     env = make_vec_env(
         make_decider_env,
@@ -95,19 +110,19 @@ def train_decider(request: StageRequest) -> Path:
         seed=seed,
         env_kwargs={
             "config": world,
-            "planner_path": None if scripted else str(run_dir / "planner.zip"),
+            "planner_path": None if scripted else str((run_dir / PLANNER_FILE).resolve()),
             "torch_threads": 1 if n_envs > 1 else None,
         },
         monitor_dir=str(run_dir / "monitor"),
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
     )
     checkpoints = run_dir / "checkpoints"
-    resumed = request.resume is not None and (checkpoints / "gccp_state.pt").is_file()
+    resumed = request.resume is not None and (checkpoints / STATE_FILE).is_file()
     buffer = EpisodeReplayBuffer(gccp.buffer_capacity)
-    if resumed and (checkpoints / "buffer.npz").is_file():
-        buffer = EpisodeReplayBuffer.load(checkpoints / "buffer.npz", gccp.buffer_capacity)
+    if resumed and (checkpoints / BUFFER_FILE).is_file():
+        buffer = EpisodeReplayBuffer.load(checkpoints / BUFFER_FILE, gccp.buffer_capacity)
     if resumed and predictor is not None and gccp.predictor in LEARNED:
-        predictor.load_state_dict(load_predictor(checkpoints / "predictor.pt").state_dict())
+        predictor.load_state_dict(load_predictor(checkpoints / PREDICTOR_FILE).state_dict())
     callback = GCCPCallback(gccp, predictor, buffer, seed=seed, progress_bar=request.progress_bar)
     callback.checkpoint_dir = checkpoints
     if resumed:
@@ -116,7 +131,7 @@ def train_decider(request: StageRequest) -> Path:
         {k: v for k, v in settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
     )
     model = make_model(
-        env, run_dir, checkpoints / "decider.zip" if resumed else None, seed, request.verbose, kwargs
+        env, run_dir, checkpoints / DECIDER_FILE if resumed else None, seed, request.verbose, kwargs
     )
     try:
         if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
@@ -128,27 +143,24 @@ def train_decider(request: StageRequest) -> Path:
             )
     finally:
         env.close()
-    model.save(run_dir / "decider.zip")
+    model.save(run_dir / DECIDER_FILE)
     callback.save(checkpoints, with_model=False)
-    shutil.copyfile(run_dir / "decider.zip", checkpoints / "decider.zip")
-    if (checkpoints / "predictor.pt").is_file():
-        shutil.copyfile(checkpoints / "predictor.pt", run_dir / "predictor.pt")
-    write_episodes(callback.history, run_dir / "episodes.csv")
-    hierarchy = {
-        "planner": SCRIPTED if scripted else "planner.zip",
-        "decider": "decider.zip",
-        "predictor": gccp.predictor,
-        "predictor_weights": "predictor.pt" if gccp.predictor in LEARNED else None,
-        "mask_margin": gccp.mask_margin,
-        "mask_extrapolate_steps": gccp.mask_extrapolate_steps,
-        "mask_ego_deceleration": gccp.mask_ego_deceleration,
-        "mask_yield_margin": gccp.mask_yield_margin,
-        "world": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(world).items()},
-    }
-    (run_dir / HIERARCHY_FILE).write_text(yaml.safe_dump(hierarchy, sort_keys=False))
+    shutil.copyfile(run_dir / DECIDER_FILE, checkpoints / DECIDER_FILE)
+    if (checkpoints / PREDICTOR_FILE).is_file():
+        shutil.copyfile(checkpoints / PREDICTOR_FILE, run_dir / PREDICTOR_FILE)
+    write_episodes(callback.history, run_dir / EPISODES_FILE)
+    Hierarchy(
+        run_dir,
+        decider_file=DECIDER_FILE,
+        planner_file=SCRIPTED if scripted else PLANNER_FILE,
+        predictor=gccp.predictor,
+        predictor_weights_file=PREDICTOR_FILE if gccp.predictor in LEARNED else None,
+        trained_check=gccp.check,
+        trained_world=asdict(world),
+    ).write()
     metrics = training_metrics(callback.history, gccp)
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    plot_training_curve(callback.history, gccp, run_dir / "training_curve.png")
+    (run_dir / METRICS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
+    plot_training_curve(callback.history, gccp, run_dir / TRAINING_CURVE_FILE)
     return run_dir
 
 
@@ -160,17 +172,6 @@ def train_all(request: StageRequest) -> tuple[Path, Path]:
     planner = train_planner(planner_request)
     decider_run = train_decider(replace(request, planner=planner))
     return planner, decider_run
-
-
-def rolling_rate(values: list[int], window: int = 100) -> np.ndarray:
-    """Mean of the last ``window`` values (fewer at the start) at every episode."""
-    array = np.asarray(values, dtype=float)
-    if not len(array):
-        return array
-    sums = np.cumsum(array)
-    counts = np.minimum(np.arange(1, len(array) + 1), window)
-    previous = np.concatenate([np.zeros(window), sums])[: len(array)]
-    return (sums - previous) / counts
 
 
 def training_metrics(history: list[dict[str, Any]], gccp: GCCPSettings, window: int = 100) -> dict[str, Any]:

@@ -1,94 +1,43 @@
-"""Training stages. A run folder holds everything a run needs to be inspected, resumed or evaluated.
+"""The motion-planner stage: MaskablePPO on ``GCCPPlanner-v0``, optionally after cloning an expert.
 
-Run folder layout (rl-zoo's, plus our checkpoints)::
-
-    <log_folder>/<stage>/<env_id>_<seed>_<time>/
-        config.yml      resolved hyperparameters and world config
-        args.yml        the command's arguments
-        command.txt     the command line
-        monitor/        one Monitor CSV per env worker
-        tb/             TensorBoard logs
-        checkpoints/    <stage>_<steps>_steps.zip every ``save_freq`` steps
-        <stage>.zip     the trained model
+Run folder: see :mod:`sb3_gccp.training.run_folder`, plus ``planner.zip`` and, with ``imitation``,
+``imitation.json``, ``planner_cloned.zip`` and ``imitation_data.npz``.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import shlex
-import sys
-import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
-import yaml
 from sb3_contrib import MaskablePPO
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, StopTrainingOnMaxEpisodes
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from gccp_envs.config import IntersectionConfig
-from sb3_gccp.hyperparams import (
-    HyperparamsError,
-    check_keys,
-    gradient_steps_per_timestep,
-    load_hyperparams,
-    resolve_class,
-    resolve_policy_kwargs,
-    resolve_schedule,
-)
-from sb3_gccp.imitation import BehaviourCloningCallback, ExpertData, ImitationSettings, imitate
+from sb3_gccp.constants import PLANNER_ENV_ID, PLANNER_FILE
+from sb3_gccp.hyperparams import HyperparamsError
 from sb3_gccp.progress import StepBar
-
-PLANNER_ENV_ID = "GCCPPlanner-v0"
-
-
-@dataclass
-class StageRequest:
-    """What the user asked of a training stage."""
-
-    config_file: Path
-    seed: int = 0
-    n_timesteps: int | None = None
-    log_folder: Path = Path("runs")
-    resume: Path | None = None
-    progress_bar: bool = True
-    verbose: int = 0
-    save_freq: int = 10_000
-    """Environment steps between checkpoints (over all workers)."""
-    torch_threads: int | None = None
-    """Torch threads of the learner process (the env workers use no torch); ``None`` keeps torch's."""
-    planner: Path | None = None
-    """The frozen motion-planner ``.zip`` (decider stage)."""
-    max_episodes: int | None = None
-    """Stop the planner stage after this many episodes over all workers (N_g); None: ``n_timesteps``."""
-    run_dir: Path | None = None
-    """The folder of a new run; None: a new ``<log_folder>/<stage>/<env_id>_<seed>_<time>``."""
-    argv: list[str] = field(default_factory=lambda: list(sys.argv))
-
-
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The checkpoint with the most steps in a run folder, if any."""
-    checkpoints = list((run_dir / "checkpoints").glob("*_steps.zip"))
-    return max(checkpoints, key=lambda p: int(p.stem.split("_")[-2]), default=None)
-
-
-def latest_run(stage_dir: Path) -> Path | None:
-    """The most recently started run folder of a stage, if any."""
-    runs = [p for p in stage_dir.glob("*") if (p / "config.yml").is_file()]
-    return max(runs, key=lambda p: (p / "config.yml").stat().st_mtime, default=None)
+from sb3_gccp.training.imitation import BehaviourCloningCallback, ExpertData, ImitationSettings, imitate
+from sb3_gccp.training.run_folder import (
+    StageRequest,
+    algorithm_kwargs,
+    latest_checkpoint,
+    make_model,
+    make_run_env,
+    open_run,
+    run_budget,
+    write_run_files,
+)
 
 
 def train_planner(request: StageRequest) -> Path:
     """Train the motion-planner with MaskablePPO on ``GCCPPlanner-v0``; return the model path.
 
     With an ``imitation`` map in the entry, the policy first clones a scripted expert planner, with
-    DAgger rounds if asked (:mod:`sb3_gccp.imitation`; ``imitation.json`` records how well, and the
+    DAgger rounds if asked (:mod:`sb3_gccp.training.imitation`; ``imitation.json`` records how well, and the
     clone is saved as ``planner_cloned.zip``), and PPO continues from there for ``n_timesteps`` (0:
     cloning only), with cloning steps between its updates if ``imitation.bc_steps`` asks. With
     ``request.resume`` (a run folder), training continues from its last checkpoint with the run's own
@@ -132,7 +81,7 @@ def train_planner(request: StageRequest) -> Path:
             )
     finally:
         env.close()
-    path = run_dir / "planner.zip"
+    path = run_dir / PLANNER_FILE
     model.save(path)
     return path
 
@@ -181,91 +130,3 @@ def imitation_settings(settings: dict[str, Any]) -> ImitationSettings | None:
         return ImitationSettings.from_dict(settings[IMITATION_KEY])
     except (ValueError, TypeError) as err:
         raise HyperparamsError(str(err)) from err
-
-
-def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict[str, Any], int]:
-    """The run folder, settings and seed of a stage: a new run from the zoo file's ``env_id`` entry, or
-    with ``request.resume`` the run's own resolved config and seed. Nothing is written yet."""
-    if request.resume is None:
-        settings = load_hyperparams(request.config_file, env_id)
-        if request.n_timesteps is not None:
-            settings["n_timesteps"] = request.n_timesteps
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        run_dir = request.run_dir or request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}"
-        return run_dir, settings, request.seed
-    run_dir = request.resume
-    if not (run_dir / "config.yml").is_file():
-        raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")
-    settings = yaml.safe_load((run_dir / "config.yml").read_text())
-    return run_dir, settings, int(yaml.safe_load((run_dir / "args.yml").read_text())["seed"])
-
-
-def run_budget(
-    settings: dict[str, Any], own_keys: tuple[str, ...] = (), allow_zero: bool = False
-) -> tuple[IntersectionConfig, int, int]:
-    """Check the settings' keys (besides ``own_keys``) against MaskablePPO; the world config,
-    ``n_timesteps`` (0 allowed with ``allow_zero``) and ``n_envs``."""
-    check_keys({k: v for k, v in settings.items() if k not in own_keys}, MaskablePPO)
-    world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
-    n_timesteps = int(settings.get("n_timesteps", 100_000))
-    n_envs = int(settings.get("n_envs", 1))
-    if n_timesteps < (0 if allow_zero else 1) or n_envs < 1:
-        what = "non-negative" if allow_zero else "positive"
-        raise HyperparamsError(f"n_timesteps must be {what} and n_envs positive")
-    return world, n_timesteps, n_envs
-
-
-def make_model(
-    env: VecEnv, run_dir: Path, checkpoint: Path | None, seed: int, verbose: int, kwargs: dict[str, Any]
-) -> MaskablePPO:
-    """MaskablePPO logging to ``run_dir/tb``: loaded from ``checkpoint`` if given, else built from
-    ``kwargs``."""
-    if checkpoint is not None:
-        return MaskablePPO.load(checkpoint, env=env, tensorboard_log=str(run_dir / "tb"))
-    return MaskablePPO(env=env, tensorboard_log=str(run_dir / "tb"), seed=seed, verbose=verbose, **kwargs)
-
-
-def algorithm_kwargs(
-    settings: dict[str, Any],
-    n_timesteps: int,
-    default_policy: str = "MotionPlannerPolicy",
-    algorithm: type[BaseAlgorithm] = MaskablePPO,
-) -> dict[str, Any]:
-    """Constructor arguments of ``algorithm`` from resolved settings: step schedules placed on its
-    gradient steps for a run of ``n_timesteps``, the policy and the classes in ``policy_kwargs`` imported."""
-    kwargs = {k: v for k, v in settings.items() if k not in ("n_timesteps", "n_envs", "env_kwargs", "policy")}
-    per_timestep = gradient_steps_per_timestep(algorithm, settings)
-    for key in ("learning_rate", "clip_range"):
-        if key in kwargs:
-            kwargs[key] = resolve_schedule(kwargs[key], key, per_timestep, n_timesteps)
-    if kwargs.get("policy_kwargs"):
-        kwargs["policy_kwargs"] = resolve_policy_kwargs(kwargs["policy_kwargs"])
-    kwargs["policy"] = resolve_class(str(settings.get("policy", default_policy)), algorithm.policy_aliases)
-    return kwargs
-
-
-def make_run_env(env_id: str, n_envs: int, seed: int, world: IntersectionConfig, run_dir: Path) -> VecEnv:
-    """The training envs of a run: ``n_envs`` workers (subprocesses when more than one) of ``env_id``
-    on ``world``, with Monitor files in ``run_dir/monitor``."""
-    return make_vec_env(
-        env_id,
-        n_envs=n_envs,
-        seed=seed,
-        env_kwargs={"config": world},
-        monitor_dir=str(run_dir / "monitor"),
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
-    )
-
-
-def write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:
-    run_dir.mkdir(parents=True, exist_ok=False)
-    (run_dir / "config.yml").write_text(yaml.safe_dump(settings, sort_keys=True))
-    args = {
-        "config_file": str(request.config_file),
-        "seed": request.seed,
-        "n_timesteps": request.n_timesteps,
-        "log_folder": str(request.log_folder),
-        "planner": None if request.planner is None else str(request.planner),
-    }
-    (run_dir / "args.yml").write_text(yaml.safe_dump(args, sort_keys=True))
-    (run_dir / "command.txt").write_text(shlex.join(request.argv) + "\n")

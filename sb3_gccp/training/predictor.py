@@ -34,21 +34,19 @@ from torch import nn
 from gccp_envs.config import DT, IntersectionConfig
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
-from sb3_gccp.collision import CollisionChecker
+from sb3_gccp.constants import ARGS_FILE, COMMAND_FILE, DECIDER_ENV_ID, METRICS_FILE, PREDICTOR_FILE, SCRIPTED
 from sb3_gccp.frozen import FrozenPolicy
-from sb3_gccp.hierarchy import SCRIPTED
-from sb3_gccp.prediction import (
+from sb3_gccp.gccp.mask import GCCPMask
+from sb3_gccp.gccp.predictor import (
     ConstantVelocityPredictor,
-    GCCPMask,
     PredictorConfig,
     TrajectoryPredictor,
     save_predictor,
 )
-from sb3_gccp.predictor_training import PredictorTrainer, displacement_errors
+from sb3_gccp.gccp.replay import EpisodeReplayBuffer, collect_decisions
+from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors
 from sb3_gccp.progress import new_bar
-from sb3_gccp.replay import EpisodeReplayBuffer, collect_decisions
 
-DECIDER_ENV_ID = "GCCPDecider-v0"
 HELDOUT_SEED_OFFSET = 1_000_000
 """Held-out episodes draw their traffic seeds from ``seed + HELDOUT_SEED_OFFSET``."""
 SCENE_EPISODES = 20
@@ -79,7 +77,7 @@ class PredictorRequest:
     torch_threads: int | None = None
     world: dict[str, Any] = field(default_factory=dict)
     predictor_kwargs: dict[str, Any] = field(default_factory=dict)
-    """:class:`~sb3_gccp.prediction.PredictorConfig` fields of both learned predictors (but
+    """:class:`~sb3_gccp.gccp.predictor.PredictorConfig` fields of both learned predictors (but
     ``goal_condition``, which tells them apart)."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
@@ -88,7 +86,7 @@ def frozen_planner(planner: Path | None) -> FrozenPolicy | None:
     """The option env's planner: a frozen ``.zip``, or None (the scripted planner) for ``scripted``/None."""
     if planner is None or str(planner) == SCRIPTED:
         return None
-    return FrozenPolicy(planner, threads=None)
+    return FrozenPolicy(planner)
 
 
 def subgoal_chooser(
@@ -126,9 +124,9 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
         request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     )
     run_dir.mkdir(parents=True, exist_ok=False)
-    (run_dir / "command.txt").write_text(shlex.join(request.argv) + "\n")
+    (run_dir / COMMAND_FILE).write_text(shlex.join(request.argv) + "\n")
     args = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(request).items() if k != "argv"}
-    (run_dir / "args.yml").write_text(yaml.safe_dump(args, sort_keys=False))
+    (run_dir / ARGS_FILE).write_text(yaml.safe_dump(args, sort_keys=False))
 
     rng = np.random.default_rng(request.seed)
     th.manual_seed(request.seed)
@@ -153,11 +151,11 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
             loss = trainer.train_steps(train, n, rng)
             errors = displacement_errors(predictor, heldout)
             curves.append({"predictor": name, "step": start + n, "loss": loss, **errors})  # type: ignore[dict-item]
-        save_predictor(predictor, run_dir / ("predictor.pt" if goal_condition else "predictor_no_goal.pt"))
+        save_predictor(predictor, run_dir / (PREDICTOR_FILE if goal_condition else "predictor_no_goal.pt"))
         predictors[name] = predictor
     predictors["cv"] = ConstantVelocityPredictor()
     metrics = {name: displacement_errors(p, heldout) for name, p in predictors.items()}
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (run_dir / METRICS_FILE).write_text(json.dumps(metrics, indent=2))
     with open(run_dir / "curves.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(curves[0]))
         writer.writeheader()
@@ -267,7 +265,7 @@ def plot_scene(
     import matplotlib.pyplot as plt
 
     env = GCCPDeciderEnv(config=world, planner=frozen_planner(planner))
-    gccp = GCCPMask(predictor, CollisionChecker())
+    gccp = GCCPMask(predictor)
     fig, axes = plt.subplots(len(tasks), 2, figsize=(10, 5 * len(tasks)), squeeze=False)
     for i, (row, task) in enumerate(zip(axes, tasks, strict=True)):
         obs = _busy_scene(env, gccp, seed + SCENE_EPISODES * i, task, world.bev_extent / 2, decider)

@@ -1,0 +1,143 @@
+"""``sb3_gccp train --stage planner|decider|predictor|all``: train a stage from a zoo-style YAML file
+(``all``: the planner, then the decision-maker with GCCP on the side)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from sb3_gccp.commands.common import CLIError, add_world_overrides, load_world_config, parse_assignments
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """Declare the command and its options."""
+    parser = commands.add_parser("train", help="train a stage from a zoo-style YAML file")
+    parser.add_argument(
+        "--stage",
+        choices=["planner", "decider", "predictor", "all"],
+        required=True,
+        help="planner: MaskablePPO on GCCPPlanner-v0; decider: MaskablePPO on GCCPDecider-v0 with the "
+        "frozen --planner and GCCP on the side; predictor: the GCCP trajectory predictor alone; "
+        "all: planner then decider",
+    )
+    parser.add_argument("--config", help="zoo-style YAML (default: zoo_configs/ppo_mask.yml)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("-n", "--n-timesteps", type=int, help="override the file's n_timesteps")
+    parser.add_argument("--log-folder", default="runs", help="runs go to LOG_FOLDER/STAGE/ENV_SEED_TIME")
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="",
+        metavar="RUN_DIR",
+        help="continue a run from its last checkpoint (default: the newest run)",
+    )
+    parser.add_argument("--save-freq", type=int, default=10_000, help="env steps between checkpoints")
+    parser.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help="torch threads of the learner (default 1: the env workers need the other cores, and the "
+        "recipe in zoo_configs/ was run with 1)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    parser.add_argument(
+        "--planner",
+        help="frozen motion-planner .zip (decider and predictor stages), or 'scripted' (the scripted "
+        "pure-pursuit planner)",
+    )
+    predictor = parser.add_argument_group("predictor stage")
+    predictor.add_argument("--buffer", help="train on this saved replay buffer (.npz) instead of collecting")
+    predictor.add_argument(
+        "--subgoals", default="random", help="subgoals while collecting: random, farthest or a decider .zip"
+    )
+    predictor.add_argument("--episodes", type=int, default=200, help="training episodes to collect")
+    predictor.add_argument("--heldout-episodes", type=int, default=50, help="held-out episodes to collect")
+    predictor.add_argument("--gradient-steps", type=int, default=3000, help="predictor gradient steps")
+    predictor.add_argument("--eval-every", type=int, default=250, help="gradient steps between evaluations")
+    predictor.add_argument(
+        "--predictor-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="PredictorConfig field of both learned predictors (repeatable): cv_residual=true",
+    )
+    add_world_overrides(predictor)
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> None:
+    """Train the stage asked for and print where its run went."""
+    from sb3_gccp.hyperparams import HyperparamsError, default_config_file
+    from sb3_gccp.training.decider import train_all, train_decider
+    from sb3_gccp.training.planner import train_planner
+    from sb3_gccp.training.run_folder import StageRequest, latest_run
+
+    if args.stage == "predictor":
+        _train_predictor(args)
+        return
+    if args.stage == "decider" and args.resume is None and not args.planner:
+        raise CLIError("the decider stage needs --planner PATH.zip (a trained motion-planner)")
+    if args.stage == "all" and args.resume is not None:
+        raise CLIError("--resume works per stage: use --stage planner or --stage decider with --resume")
+    config_file = Path(args.config) if args.config else default_config_file("ppo_mask.yml")
+    resume = None
+    if args.resume is not None:
+        resume = Path(args.resume) if args.resume else latest_run(Path(args.log_folder) / args.stage)
+        if resume is None:
+            raise CLIError(f"nothing to resume in {Path(args.log_folder) / args.stage}")
+    if args.n_timesteps is not None and args.n_timesteps < 1:
+        raise CLIError("-n/--n-timesteps must be positive")
+    request = StageRequest(
+        config_file=config_file,
+        seed=args.seed,
+        n_timesteps=args.n_timesteps,
+        log_folder=Path(args.log_folder),
+        resume=resume,
+        progress_bar=not args.no_progress,
+        verbose=args.verbose,
+        save_freq=args.save_freq,
+        torch_threads=args.torch_threads,
+        planner=Path(args.planner) if args.planner else None,
+        argv=["sb3_gccp", *sys.argv[1:]],
+    )
+    try:
+        if args.stage == "planner":
+            print(f"saved {train_planner(request)}")
+        elif args.stage == "decider":
+            print(f"saved {train_decider(request)}")
+        else:
+            planner, run_dir = train_all(request)
+            print(f"saved {planner}")
+            print(f"saved {run_dir}")
+    except (HyperparamsError, ValueError, OSError) as err:
+        raise CLIError(str(err)) from err
+
+
+def _train_predictor(args: argparse.Namespace) -> None:
+    from sb3_gccp.training.predictor import PredictorRequest, train_predictor_stage
+
+    world = dataclasses.asdict(load_world_config(None, args.set))
+    request = PredictorRequest(
+        planner=Path(args.planner) if args.planner else None,
+        buffer=Path(args.buffer) if args.buffer else None,
+        subgoals=args.subgoals,
+        episodes=args.episodes,
+        heldout_episodes=args.heldout_episodes,
+        gradient_steps=args.gradient_steps,
+        eval_every=args.eval_every,
+        seed=args.seed,
+        log_folder=Path(args.log_folder),
+        progress_bar=not args.no_progress,
+        torch_threads=args.torch_threads,
+        world=world,
+        predictor_kwargs=parse_assignments(args.predictor_set, "--predictor-set"),
+        argv=["sb3_gccp", *sys.argv[1:]],
+    )
+    try:
+        run_dir = train_predictor_stage(request)
+    except (ValueError, OSError) as err:
+        raise CLIError(str(err)) from err
+    print(f"saved {run_dir}")

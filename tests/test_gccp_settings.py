@@ -1,0 +1,90 @@
+"""The GCCP settings: the collision check's defaults, validation, YAML form and mask; the gccp map."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor
+from sb3_gccp.gccp.settings import GCCPCheck, GCCPSettings
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"n_episode": 5}, "unknown gccp settings key(s): 'n_episode' (did you mean 'n_episodes'?)"),
+        ({"predictor": "magic"}, "gccp.predictor must be one of learned, no_goal, cv, none, got 'magic'"),
+        ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
+        ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
+        ({"mask_margin": -0.5}, "gccp.mask_margin must be a non-negative number, got -0.5"),
+        (
+            {"mask_extrapolate_steps": 1.5},
+            "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
+        ),
+        ({"mask_ego_deceleration": 0}, "gccp.mask_ego_deceleration must be a positive number, got 0"),
+        (
+            {"predictor_kwargs": {"decoder_width": 3}},
+            "unknown predictor config key(s): 'decoder_width' (did you mean 'decoder_hidden'?)",
+        ),
+    ],
+)
+def test_bad_settings_name_the_problem(values, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+        GCCPSettings.from_dict(values)
+
+
+def test_a_check_builds_the_mask_with_its_margin_and_extrapolation():
+    mask = GCCPCheck(margin=1.0, extrapolate_steps=5).make_mask(ConstantVelocityPredictor())
+    assert mask.checker.margin == 1.0 and mask.checker.ego_size == (6.0, 3.0)
+    assert mask.extrapolate_steps == 5
+    paper = GCCPCheck().make_mask(ConstantVelocityPredictor())
+    assert paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
+    assert paper.ego_deceleration is None and mask.ego_deceleration is None
+    braking = GCCPCheck(extrapolate_steps=5, ego_deceleration=4.0)
+    assert braking.make_mask(ConstantVelocityPredictor()).ego_deceleration == 4.0
+    held = GCCPCheck(margin=1.0, yield_margin=0.5).make_mask(ConstantVelocityPredictor())
+    assert held.yield_checker is not None and held.yield_checker.margin == 0.5
+    assert held.yield_checker.ego_size == (5.5, 2.5)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"margin": -1.0}, "mask_margin must be a non-negative number, got -1.0"),
+        ({"extrapolate_steps": -1}, "mask_extrapolate_steps must be a non-negative integer, got -1"),
+        ({"ego_deceleration": 0.0}, "mask_ego_deceleration must be a positive number, got 0.0"),
+        ({"yield_margin": "wide"}, "mask_yield_margin must be a non-negative number, got 'wide'"),
+    ],
+)
+def test_a_check_built_in_code_rejects_bad_values_by_their_yaml_key(values, message):
+    with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+        GCCPCheck(**values)
+
+
+def test_the_yaml_form_of_a_check_round_trips_and_names_the_file_in_errors():
+    check = GCCPCheck.from_dict({"mask_margin": 1, "mask_extrapolate_steps": 10})
+    assert check == GCCPCheck(margin=1.0, extrapolate_steps=10) and isinstance(check.margin, float)
+    assert check.to_dict() == {
+        "mask_margin": 1.0,
+        "mask_extrapolate_steps": 10,
+        "mask_ego_deceleration": None,
+        "mask_yield_margin": None,
+    }
+    assert GCCPCheck.from_dict(check.to_dict()) == check
+    assert check.replace({"mask_yield_margin": 0.5}).yield_margin == 0.5
+    with pytest.raises(ValueError, match=r"^hierarchy\.yml: mask_margin must be a non-negative number"):
+        GCCPCheck.from_dict({"mask_margin": -1}, "hierarchy.yml: ")
+    with pytest.raises(ValueError, match=r"^unknown GCCP check key\(s\) margin: expected mask_margin, "):
+        check.replace({"margin": 1.0})
+
+
+def test_gccp_settings_read_the_check_from_their_mask_keys_and_write_them_back():
+    values = {"n_episodes": 10, "mask_margin": 1.0, "mask_yield_margin": 0.5}
+    settings = GCCPSettings.from_dict(values)
+    assert settings.check == GCCPCheck(margin=1.0, yield_margin=0.5)
+    written = settings.to_dict()
+    assert list(written)[-4:] == list(GCCPCheck().to_dict()) and "check" not in written
+    assert GCCPSettings.from_dict(written) == settings
+    with pytest.raises(ValueError, match=r"^unknown gccp settings key\(s\): 'check'"):
+        GCCPSettings.from_dict({"check": {}})
