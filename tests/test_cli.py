@@ -46,3 +46,16 @@ def test_evaluate_rejects_a_bad_mask_setting_in_one_line(capsys, model, mask, me
     assert main(["evaluate", "--model", str(model), "--mask", mask]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_a_decider_run_reports_where_its_rolling_success_passed_70_and_90_percent(tmp_path):
+    from sb3_gccp.commands.train import sample_efficiency
+
+    metrics = {"window": 100, "final_success_rate": 0.9, "final_collision_rate": 0.06}
+    (tmp_path / "metrics.json").write_text(
+        json.dumps({**metrics, "first_episode_success_70": 100, "first_episode_success_90": None})
+    )
+    assert sample_efficiency(tmp_path) == (
+        "rolling success over 100 episodes first passed 70 % at episode 100, 90 % never; "
+        "at the end 90.0 % success, 6.0 % collisions"
+    )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -107,13 +108,30 @@ def run(args: argparse.Namespace) -> None:
         if args.stage == "planner":
             print(f"saved {train_planner(request)}")
         elif args.stage == "decider":
-            print(f"saved {train_decider(request)}")
+            run_dir = train_decider(request)
+            print(f"saved {run_dir}")
+            print(sample_efficiency(run_dir))
         else:
             planner, run_dir = train_all(request)
             print(f"saved {planner}")
             print(f"saved {run_dir}")
+            print(sample_efficiency(run_dir))
+            print(f"evaluate it: sb3_gccp evaluate --model {run_dir} --episodes-per-task 50 --seed 0")
     except (HyperparamsError, ValueError, OSError) as err:
         raise CLIError(str(err)) from err
+
+
+def sample_efficiency(run_dir: Path) -> str:
+    """One line from a decider run's ``metrics.json``: where the rolling success first passed 70 and
+    90 % (the paper's Fig. 5 reading), and the rates at the end."""
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    firsts = {level: metrics[f"first_episode_success_{level}"] for level in (70, 90)}
+    passed = ", ".join(f"{level} % {f'at episode {n}' if n else 'never'}" for level, n in firsts.items())
+    return (
+        f"rolling success over {metrics['window']} episodes first passed {passed}; at the end "
+        f"{100 * metrics['final_success_rate']:.1f} % success, {100 * metrics['final_collision_rate']:.1f} % "
+        "collisions"
+    )
 
 
 def _train_predictor(args: argparse.Namespace) -> None:

@@ -21,6 +21,7 @@ from sb3_gccp.networks import EncoderConfig
 from sb3_gccp.reproduce.methods import METHODS, Method
 from sb3_gccp.training.baselines import baseline_algorithm, max_episode_steps
 from sb3_gccp.training.decider import gccp_settings
+from sb3_gccp.training.planner import IMITATION_KEY, imitation_settings
 from sb3_gccp.training.run_folder import run_budget
 
 PLANNER_EXTRACTOR = "sb3_gccp.policies.PlannerFeaturesExtractor"
@@ -136,7 +137,11 @@ PRESETS = {
         n_envs=1,
         encoder=QUICK_ENCODER,
         hyperparams={
-            "planner": {"n_steps": 256, "batch_size": 64},
+            "planner": {
+                "n_steps": 256,
+                "batch_size": 64,
+                "imitation": {"expert_steps": 256, "epochs": 1, "dagger_rounds": 1, "dagger_steps": 128},
+            },
             "hierarchy": {"n_steps": 32, "batch_size": 32},
             "ppo": {"n_steps": 256, "batch_size": 64},
             "dqn": {"learning_starts": 200, "buffer_size": 2000},
@@ -234,10 +239,12 @@ def check_settings(method: Method | None, settings: dict[str, Any]) -> None:
     :raises ValueError: with a one-line reason
     """
     if method is None or method.is_hierarchy:
-        own = ("gccp",) if method is not None else ()
+        own = ("gccp",) if method is not None else (IMITATION_KEY,)
         run_budget(settings, own_keys=own)
         if method is not None:
             gccp_settings(settings)
+        else:
+            imitation_settings(settings)
         return
     check_keys(settings, baseline_algorithm(method.name))
     IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
