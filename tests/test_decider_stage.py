@@ -154,7 +154,10 @@ def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path
         "train", "--stage", "all", "--config", str(config), "--log-folder", "runs", cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr
-    planner_zip, run = (Path(line.split(" ", 1)[1]) for line in result.stdout.strip().splitlines()[-2:])
+    saved = [line for line in result.stdout.splitlines() if line.startswith("saved ")]
+    planner_zip, run = (Path(line.split(" ", 1)[1]) for line in saved)
+    assert f"sb3_gccp evaluate --model {run}" in result.stdout  # it says what to do with the run
+    assert "rolling success over 100 episodes first passed 70 %" in result.stdout
     # 2 episodes of at most 2 s (20 steps) each, far below the planner's 2000-step budget.
     assert MaskablePPO.load(tmp_path / planner_zip).num_timesteps <= 40
     assert (tmp_path / run / "planner.zip").read_bytes() == (tmp_path / planner_zip).read_bytes()
