@@ -92,7 +92,7 @@ class SearchPlanner:
     line, heading its way, at speed. A goal beside or behind the ego, or already reached, means
     braking. It never takes a masked action (unless all are masked). Like :class:`ScriptedPlanner` it
     sees the observation only and ignores traffic (the decision-maker's job); it reaches more subgoals
-    because it plans the heading as well as the position (README, Motion-planner).
+    because it plans the heading as well as the position (docs/results.md, the motion-planner).
     """
 
     def __init__(

@@ -1,20 +1,20 @@
 """Imitation pre-training of the motion-planner: behaviour cloning (and DAgger) of a scripted planner.
 
 PPO on ``GCCPPlanner-v0`` learns to drive to subgoals but never to brake for one it should stop on
-(README): braking is a long chain of one action whose pay-off comes at the end. The scripted
-pure-pursuit planner (:class:`gccp_envs.scripted.ScriptedPlanner`) does stop. This module drives it
-on the planner env, records (observation, action mask, action) and fits a MaskablePPO policy to it by
-maximum likelihood under the same masks, so that a learned ``MotionPlannerPolicy`` starts from (or
-stays at) a planner that stops. The expert is the pure-pursuit planner or the search planner
+(docs/experiments/2026-11-23-ppo-planner-never-stops.md): braking is a long chain of one action whose
+pay-off comes at the end. The scripted planners do stop. This module drives one on the planner env,
+records (observation, action mask, action) and fits a MaskablePPO policy to it by maximum likelihood
+under the same masks, so that a learned ``MotionPlannerPolicy`` starts from a planner that stops. The
+expert is the pure-pursuit planner (:class:`gccp_envs.scripted.ScriptedPlanner`) or the search planner
 (:class:`gccp_envs.scripted.SearchPlanner`, which reaches more subgoals); DAgger rounds then let the
 cloned policy drive and the expert label where it went. The planner stage runs it before PPO when the
 zoo entry has an ``imitation`` map (see :class:`ImitationSettings`).
 
-PPO alone undoes the clone's braking (README), so cloning also fits the value head to the returns of
-the driven episodes (``value_coef``: PPO's first advantages are then not noise) and, during PPO,
-:class:`BehaviourCloningCallback` takes ``bc_steps`` cloning steps on the data set after every PPO
-update, in the spirit of DAPG (Rajeswaran et al. 2018, https://arxiv.org/abs/1709.10087), which
-adds the demonstrations' likelihood to the policy gradient.
+PPO alone undoes a plain clone's braking (docs/experiments/), so cloning also fits the value head to
+the returns of the driven episodes (``value_coef``: PPO's first advantages are then not noise) and,
+during PPO, :class:`BehaviourCloningCallback` takes ``bc_steps`` cloning steps on the data set after
+every PPO update, in the spirit of DAPG (Rajeswaran et al. 2018, https://arxiv.org/abs/1709.10087),
+which adds the demonstrations' likelihood to the policy gradient.
 """
 
 from __future__ import annotations
