@@ -135,6 +135,7 @@ def sb3_gccp(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow  # 30 s; tests/test_export.py covers export in the fast tier
 def test_export_gives_small_folders_that_evaluate_like_their_runs(reproduced, tmp_path):
     folder, result = reproduced
     assert result.returncode == 0, result.stderr
