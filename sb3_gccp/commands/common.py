@@ -101,3 +101,14 @@ def add_allow_overrides(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="run the overrides section of hierarchy.yml (settings the decider was not trained with)",
     )
+
+
+def add_torch_threads(parser: argparse.ArgumentParser, whose: str) -> None:
+    """``--torch-threads N`` (default 1, as the shipped models were trained): torch threads of ``whose``."""
+    parser.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help=f"torch threads of {whose} (default 1: the networks are small, and the env workers need the "
+        "other cores)",
+    )

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sb3_gccp.commands.common import CLIError, parse_assignments
+from sb3_gccp.commands.common import CLIError, add_torch_threads, parse_assignments
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -35,13 +35,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--log-folder", default="runs", help="runs go to LOG_FOLDER/reproduce/PRESET/seedK/METHOD"
     )
     parser.add_argument("--eval-seed", type=int, default=0, help="first traffic seed of the evaluation")
-    parser.add_argument(
-        "--torch-threads",
-        type=int,
-        default=1,
-        help="torch threads of the learners (default 1: the networks are small, and more threads slow "
-        "them down on a busy machine)",
-    )
+    add_torch_threads(parser, "the learners")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument(
         "--set",

@@ -9,7 +9,13 @@ import json
 import sys
 from pathlib import Path
 
-from sb3_gccp.commands.common import CLIError, add_world_overrides, load_world_config, parse_assignments
+from sb3_gccp.commands.common import (
+    CLIError,
+    add_torch_threads,
+    add_world_overrides,
+    load_world_config,
+    parse_assignments,
+)
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -35,13 +41,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="continue a run from its last checkpoint (default: the newest run)",
     )
     parser.add_argument("--save-freq", type=int, default=10_000, help="env steps between checkpoints")
-    parser.add_argument(
-        "--torch-threads",
-        type=int,
-        default=1,
-        help="torch threads of the learner (default 1: the env workers need the other cores, and the "
-        "recipe in zoo_configs/ was run with 1)",
-    )
+    add_torch_threads(parser, "the learner")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
     parser.add_argument(
