@@ -153,9 +153,11 @@ class IntersectionConfig:
     steps (a turn holds the speed). Below 1 m/s it always accelerates straight first, so the default 1.0
     adds nothing, and an ego that starts a turn from a stop crawls through it at 1 m/s; the shipped
     hierarchy runs 4.0 (ours; docs/experiments/2026-11-25-turn-speed-and-yield-margin.md)."""
-    mask_lookahead: int = 5
+    mask_lookahead: int = 10
     """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
-    and some action held for the remaining steps keeps it there (1: the next step only)."""
+    and some action held for the remaining steps keeps it there (1: the next step only). 10 (1 s): at 5
+    a planner could still enter a right-hand corner too fast to stay on the road
+    (docs/experiments/2026-11-26-road-keeping-look-ahead.md)."""
 
     # --- state (paper III-B-1) -------------------------------------------------------------------
     num_neighbours: int = 5
