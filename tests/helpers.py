@@ -104,7 +104,7 @@ def save_tiny_models(folder: Path) -> tuple[Path, Path]:
 
 
 def rewrite_zip_data(path: Path, **entries: object) -> None:
-    """Replace entries of the ``data`` JSON of an SB3 ``.zip`` in place (as someone editing the file would)."""
+    """Replace entries of the ``data`` JSON of an SB3 ``.zip`` in place, as someone editing it would."""
     import json
     import zipfile
 

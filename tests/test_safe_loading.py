@@ -82,17 +82,17 @@ def test_a_policy_class_of_another_algorithm_is_refused(tiny_planner, tmp_path):
     path = Path(shutil.copy(tiny_planner, tmp_path))
     init = "<function MultiInputPolicy.__init__ at 0x7f0000000000>"
     rewrite_zip_data(path, policy_class={"__module__": "stable_baselines3.dqn.policies", "__init__": init})
-    with pytest.raises(
-        ValueError, match="'stable_baselines3.dqn.policies.MultiInputPolicy' is not a Maskable"
-    ):
+    with pytest.raises(ValueError) as raised:
         load_planner(path, IntersectionConfig.from_dict(TINY_WORLD))
+    assert "'stable_baselines3.dqn.policies.MultiInputPolicy' is not a MaskableActorCriticPolicy" in str(
+        raised.value
+    )
 
 
 def test_a_decider_loads_where_a_planner_does_not(tiny_planner):
     world = IntersectionConfig.from_dict(TINY_WORLD)
     decider = load_decider(tiny_planner.parent / "decider.zip", world, deterministic=False)
     assert not decider.deterministic
-    with pytest.raises(
-        ValueError, match="planner.zip is not a decision-maker of this world: it observes bev"
-    ):
+    with pytest.raises(ValueError) as raised:
         load_decider(tiny_planner, world)
+    assert "planner.zip is not a decision-maker of this world: it observes bev, goal," in str(raised.value)
