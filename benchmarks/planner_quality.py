@@ -38,7 +38,7 @@ from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.evaluation import evaluate
-from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.frozen import load_planner
 from sb3_gccp.training.imitation import EXPERTS
 
 LANE_CHANGE_OFFSET = 3.0
@@ -177,7 +177,9 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     planner: Planner = (
-        EXPERTS[args.model](IntersectionConfig()) if args.model in EXPERTS else FrozenPolicy(args.model)
+        EXPERTS[args.model](IntersectionConfig())
+        if args.model in EXPERTS
+        else load_planner(args.model, IntersectionConfig())
     )
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)

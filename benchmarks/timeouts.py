@@ -74,7 +74,8 @@ def main() -> None:
     except (ValueError, OSError) as err:
         parser.error(str(err))
     th.set_num_threads(1)
-    env, policy = hierarchy.make_env(), hierarchy.decider_policy()
+    env = hierarchy.make_env()
+    policy = hierarchy.decider_policy(env.config)
     counts = {"queued": 0, "standoff": 0, "other": 0}
     decision_s = env.unwrapped.config.decision_period * DT  # type: ignore[attr-defined]
     total = 0

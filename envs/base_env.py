@@ -10,7 +10,7 @@ import numpy as np
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.geometry import FloatArray
-from gccp_envs.observation import SceneObserver, state_spaces
+from gccp_envs.observation import SceneObserver
 from gccp_envs.world import IntersectionWorld, StepOutcome
 
 Obs = dict[str, np.ndarray]
@@ -47,7 +47,6 @@ class IntersectionBaseEnv(gym.Env):
         self.render_mode = render_mode
         self.world = IntersectionWorld(self.config)
         self.observer = SceneObserver(self.world)
-        self._state_spaces = state_spaces(self.config)
         self._subgoal: FloatArray | None = None
         self._renderer: Any = None
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
@@ -70,14 +71,14 @@ def require_int(name: str, value: Any, minimum: int = 1) -> None:
 
 
 def require_positive(name: str, value: Any) -> None:
-    """Raise ``ValueError`` unless ``value`` is a number (not a bool) above zero."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+    """Raise ``ValueError`` unless ``value`` is a finite number (not a bool) above zero."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value < math.inf:
         raise ValueError(f"{name} must be a positive number, got {value!r}")
 
 
 def require_non_negative(name: str, value: Any) -> None:
-    """Raise ``ValueError`` unless ``value`` is a number (not a bool) of at least zero."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
+    """Raise ``ValueError`` unless ``value`` is a finite number (not a bool) of at least zero."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < math.inf:
         raise ValueError(f"{name} must be a non-negative number, got {value!r}")
 
 
@@ -268,6 +269,13 @@ class IntersectionConfig:
 
 def _validate(config: IntersectionConfig) -> None:
     """Raise ``ValueError`` naming the first bad field."""
+    for field in fields(config):
+        value = getattr(config, field.name)
+        if any(
+            isinstance(v, float) and not math.isfinite(v)
+            for v in (value if isinstance(value, tuple) else (value,))
+        ):
+            raise ValueError(f"{field.name} must be finite, got {value!r}")
     if config.task not in (*TASKS, "mixed"):
         raise ValueError(f"unknown task {config.task!r}: expected one of {', '.join((*TASKS, 'mixed'))}")
     if config.ego_lane not in ("random", "task"):

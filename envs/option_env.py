@@ -23,7 +23,8 @@ import numpy as np
 from gymnasium import spaces
 
 from gccp_envs.base_env import IntersectionBaseEnv, Obs
-from gccp_envs.observation import pose_space
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.observation import pose_space, state_spaces
 from gccp_envs.rewards import decider_reward, goal_errors, goal_reached, planner_reward
 from gccp_envs.scripted import ScriptedPlanner
 from gccp_envs.world import StepOutcome
@@ -34,6 +35,13 @@ MaskFunction = Callable[[Obs], np.ndarray]
 """A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed."""
 PlannerStepCallback = Callable[["GCCPDeciderEnv"], None]
 """Called with the env after every planner step inside an option."""
+
+
+def decider_spaces(config: IntersectionConfig) -> tuple[spaces.Dict, spaces.Discrete]:
+    """The observation and action spaces of the decision-maker on ``config``: N subgoal candidates."""
+    n = config.num_subgoals
+    observation = spaces.Dict({**state_spaces(config), "task_goal": pose_space(), "subgoals": pose_space(n)})
+    return observation, spaces.Discrete(n)
 
 
 class GCCPDeciderEnv(IntersectionBaseEnv):
@@ -51,11 +59,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
-        n = self.config.num_subgoals
-        self.action_space = spaces.Discrete(n)
-        self.observation_space = spaces.Dict(
-            {**self._state_spaces, "task_goal": pose_space(), "subgoals": pose_space(n)}
-        )
+        self.observation_space, self.action_space = decider_spaces(self.config)
         self.planner: Planner = planner or ScriptedPlanner(self.config)
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None

@@ -13,11 +13,17 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
+from gccp_envs.action import EgoAction
 from gccp_envs.base_env import IntersectionBaseEnv, Obs
-from gccp_envs.config import DT
-from gccp_envs.observation import pose_space
+from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.observation import pose_space, state_spaces
 from gccp_envs.rewards import goal_errors, goal_reached, planner_reward
 from gccp_envs.world import StepOutcome
+
+
+def planner_spaces(config: IntersectionConfig) -> tuple[spaces.Dict, spaces.Discrete]:
+    """The observation and action spaces of the motion-planner (and of the flat env) on ``config``."""
+    return spaces.Dict({**state_spaces(config), "goal": pose_space()}), spaces.Discrete(len(EgoAction))
 
 
 class GCCPPlannerEnv(IntersectionBaseEnv):
@@ -25,8 +31,7 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.action_space = spaces.Discrete(6)
-        self.observation_space = spaces.Dict({**self._state_spaces, "goal": pose_space()})
+        self.observation_space, self.action_space = planner_spaces(self.config)
         self._arrived = False
         self._holding = False
 

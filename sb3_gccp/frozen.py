@@ -2,8 +2,10 @@
 
 ``policy.predict()`` copies and checks its input on every call (about 250 us); inside an option env
 the motion-planner runs every 0.1 s step, so the frozen planner calls the policy's forward directly
-under ``torch.inference_mode()`` (about 40 us for a small network). Loading one leaves torch's thread
-count alone: the entry point that owns the process sets it (one thread suits these small networks).
+under ``torch.inference_mode()`` (about 40 us for a small network). The policies are loaded without
+unpickling (:mod:`sb3_gccp.safe_loading`), their spaces checked against the world's before they act.
+Loading one leaves torch's thread count alone: the entry point that owns the process sets it (one
+thread suits these small networks).
 """
 
 from __future__ import annotations
@@ -14,18 +16,28 @@ from pathlib import Path
 import numpy as np
 import torch as th
 from sb3_contrib import MaskablePPO
+from sb3_contrib.common.maskable.policies import MaskableActorCriticPolicy
+
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.option_env import decider_spaces
+from gccp_envs.planner_env import planner_spaces
+from sb3_gccp.safe_loading import PolicyKind, load_policy
+
+MOTION_PLANNER = PolicyKind("motion-planner", MaskablePPO)
+"""The planner ``.zip`` of a hierarchy: acts on the planner env's spaces."""
+DECISION_MAKER = PolicyKind("decision-maker", MaskablePPO)
+"""The decider ``.zip`` of a hierarchy: acts on the option env's spaces."""
 
 
 class FrozenPolicy:
-    """Loads a MaskablePPO ``.zip`` once and maps (observation, action mask) to an action.
+    """A MaskablePPO policy that maps (observation, action mask) to an action.
 
-    :param path: the saved model
+    :param policy: the trained policy (see :func:`load_planner` and :func:`load_decider`)
     :param deterministic: take the most likely action (default) or sample
     """
 
-    def __init__(self, path: str | Path, deterministic: bool = True) -> None:
-        self.model = MaskablePPO.load(path, device="cpu")
-        self.policy = self.model.policy
+    def __init__(self, policy: MaskableActorCriticPolicy, deterministic: bool = True) -> None:
+        self.policy = policy
         self.policy.set_training_mode(False)
         self.deterministic = deterministic
 
@@ -38,8 +50,36 @@ class FrozenPolicy:
         return int(action.item())
 
 
+def load_planner(path: str | Path, world: IntersectionConfig, trusted: bool = False) -> FrozenPolicy:
+    """The motion-planner of ``path`` for ``world``, its spaces checked against the planner env's.
+
+    :param trusted: load through ``MaskablePPO.load``, which runs code pickled in the file
+    :raises ValueError: one line, when the file is no motion-planner for this world
+    """
+    return FrozenPolicy(_maskable(load_policy(path, MOTION_PLANNER, *planner_spaces(world), trusted=trusted)))
+
+
+def load_decider(
+    path: str | Path, world: IntersectionConfig, deterministic: bool = True, trusted: bool = False
+) -> FrozenPolicy:
+    """The decision-maker of ``path`` for ``world``, its spaces checked against the option env's.
+
+    :param deterministic: its most likely subgoal, or (False) one sampled
+    :param trusted: load through ``MaskablePPO.load``, which runs code pickled in the file
+    :raises ValueError: one line, when the file is no decision-maker for this world
+    """
+    policy = load_policy(path, DECISION_MAKER, *decider_spaces(world), trusted=trusted)
+    return FrozenPolicy(_maskable(policy), deterministic)
+
+
 @functools.lru_cache(maxsize=8)
-def load_frozen_policy(path: str, deterministic: bool = True) -> FrozenPolicy:
-    """A :class:`FrozenPolicy` loaded once per process and path (the option env's planner in a vec-env
+def load_frozen_planner(path: str, world: IntersectionConfig) -> FrozenPolicy:
+    """:func:`load_planner` once per process, path and world (the option env's planner in a vec-env
     worker)."""
-    return FrozenPolicy(path, deterministic=deterministic)
+    return load_planner(path, world)
+
+
+def _maskable(policy: object) -> MaskableActorCriticPolicy:
+    """The policy, which the kind's base class guarantees is a maskable one."""
+    assert isinstance(policy, MaskableActorCriticPolicy)
+    return policy

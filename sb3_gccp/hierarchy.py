@@ -16,7 +16,9 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
       world: {...}                #   world keys replacing those above
       mask: {...}                 #   GCCP check settings replacing those above
 
-Every setting above ``overrides`` is one the decision-maker was trained with. A hierarchy with
+``planner``, ``decider``, ``predictor`` and ``world`` are required, and ``predictor_weights`` with a
+learned predictor; the files named must lie inside the folder (no absolute path, no ``..``). Every
+setting above ``overrides`` is one the decision-maker was trained with. A hierarchy with
 ``overrides`` (written by ``sb3_gccp export --set/--mask``) runs only when asked explicitly
 (``allow_overrides``, the CLI's ``--allow-overrides``): a result it gives is not the trained system's.
 :class:`Hierarchy` is the one reader and writer of this file.
@@ -35,11 +37,12 @@ import yaml
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.constants import DECIDER_FILE, HIERARCHY_FILE, PLANNER_FILE, SCRIPTED
-from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.frozen import FrozenPolicy, load_decider, load_planner
 from sb3_gccp.gccp.mask import GCCPMask
-from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, load_predictor
+from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, check_predictor_world, load_predictor
 from sb3_gccp.gccp.settings import CHECK_KEYS, LEARNED, PREDICTORS, GCCPCheck
 from sb3_gccp.hyperparams import read_yaml_mapping
+from sb3_gccp.safe_loading import file_in_folder
 
 OVERRIDES = "overrides"
 """The ``hierarchy.yml`` section of settings the decider was not trained with: ``world`` and ``mask``."""
@@ -47,6 +50,8 @@ CHECK_OVERRIDES = "GCCP check: "
 """How messages name a GCCP check setting that replaces a trained one."""
 KEYS = ("planner", "decider", "predictor", "predictor_weights", *CHECK_KEYS, "world", OVERRIDES)
 """The keys of ``hierarchy.yml``, in the order they are written."""
+REQUIRED_KEYS = ("planner", "decider", "predictor", "world")
+"""The keys every ``hierarchy.yml`` has (``predictor_weights`` too with a learned predictor)."""
 
 
 @dataclass(frozen=True)
@@ -102,9 +107,14 @@ class Hierarchy:
         hierarchy = cls.from_dict(read_yaml_mapping(spec_file, "hierarchy file"), folder, str(spec_file))
         if path.is_file():
             hierarchy = dataclasses.replace(hierarchy, decider_file=path.name)
-        for needed in (hierarchy.decider, hierarchy.planner, hierarchy.predictor_weights):
-            if needed is not None and not needed.is_file():
-                raise ValueError(f"{spec_file} names a missing file: {needed}")
+        files = {
+            "decider": hierarchy.decider_file,
+            "planner": None if hierarchy.planner is None else hierarchy.planner_file,
+            "predictor_weights": hierarchy.predictor_weights_file,
+        }
+        for key, name in files.items():
+            if name is not None and not file_in_folder(folder, name, f"{spec_file}: {key}").is_file():
+                raise ValueError(f"{spec_file} names a missing file: {folder / name}")
         return hierarchy
 
     @classmethod
@@ -117,6 +127,9 @@ class Hierarchy:
         unknown = sorted(set(spec) - set(KEYS))
         if unknown:
             raise ValueError(f"{where}: unknown key(s) {', '.join(unknown)}: expected {', '.join(KEYS)}")
+        missing = [key for key in REQUIRED_KEYS if key not in spec]
+        if missing:
+            raise ValueError(f"{where}: missing key(s) {', '.join(missing)}")
         predictor = str(spec.get("predictor", "none"))
         if predictor not in PREDICTORS:
             raise ValueError(f"{where}: predictor must be one of {', '.join(PREDICTORS)}, got {predictor!r}")
@@ -129,17 +142,19 @@ class Hierarchy:
         if unknown:
             raise ValueError(f"{where}: unknown GCCP check key(s) in {OVERRIDES}.mask: {', '.join(unknown)}")
         weights = spec.get("predictor_weights")
+        if not isinstance(spec["world"], Mapping):
+            raise ValueError(f"{where}: world must be a map of world config keys")
         if predictor in LEARNED and weights is None:
             raise ValueError(f"{where}: a {predictor} predictor needs predictor_weights")
         check = GCCPCheck.from_dict({k: v for k, v in spec.items() if k in CHECK_KEYS}, f"{where}: ")
         return cls(
             folder,
-            str(spec.get("decider", DECIDER_FILE)),
-            str(spec.get("planner", PLANNER_FILE)),
+            str(spec["decider"]),
+            str(spec["planner"]),
             predictor,
             str(weights) if predictor in LEARNED else None,
             check,
-            dict(spec.get("world") or {}),
+            dict(spec["world"]),
             world_overrides,
             mask_overrides,
         )
@@ -222,32 +237,50 @@ class Hierarchy:
 
     # --- what it runs --------------------------------------------------------------------------
     def make_env(
-        self, overrides: Mapping[str, Any] | None = None, render_mode: str | None = None
+        self,
+        overrides: Mapping[str, Any] | None = None,
+        render_mode: str | None = None,
+        trusted: bool = False,
     ) -> GCCPDeciderEnv:
-        """The option env with the frozen planner and the GCCP mask, on the hierarchy's world config.
+        """The option env with the frozen planner and the GCCP mask, on the hierarchy's world config;
+        the planner and the predictor are checked against that world before it is built.
 
         :param overrides: world config keys replacing the hierarchy's for this env only
+        :param trusted: load the planner through ``MaskablePPO.load`` (which runs code pickled in it)
+        :raises ValueError: one line, when a file cannot be read or does not fit the world
         """
         world = IntersectionConfig.from_dict({**self.world, **(overrides or {})})
         return GCCPDeciderEnv(
             world,
-            planner=None if self.planner is None else FrozenPolicy(self.planner),
-            mask_fn=self.mask_fn(),
+            planner=None if self.planner is None else load_planner(self.planner, world, trusted),
+            mask_fn=self.mask_fn(world),
             render_mode=render_mode,
         )
 
-    def mask_fn(self) -> GCCPMask | None:
-        """The GCCP module of this hierarchy (``None`` without GCCP)."""
+    def mask_fn(self, world: IntersectionConfig | None = None) -> GCCPMask | None:
+        """The GCCP module of this hierarchy (``None`` without GCCP), its predictor checked against
+        ``world`` (default: the hierarchy's)."""
         if self.predictor == "none":
             return None
         if self.predictor == "cv":
             return self.check.make_mask(ConstantVelocityPredictor())
         assert self.predictor_weights is not None
-        return self.check.make_mask(load_predictor(self.predictor_weights))
+        predictor = load_predictor(self.predictor_weights)
+        check_predictor_world(
+            predictor, world or IntersectionConfig.from_dict(self.world), self.predictor_weights
+        )
+        return self.check.make_mask(predictor)
 
-    def decider_policy(self, deterministic: bool = True) -> FrozenPolicy:
-        """The decision-maker: its most likely subgoal, or (``deterministic=False``) one sampled."""
-        return FrozenPolicy(self.decider, deterministic=deterministic)
+    def decider_policy(
+        self, world: IntersectionConfig, deterministic: bool = True, trusted: bool = False
+    ) -> FrozenPolicy:
+        """The decision-maker for an option env on ``world`` (``env.config``), checked against it: its
+        most likely subgoal, or (``deterministic=False``) one sampled.
+
+        :param trusted: load it through ``MaskablePPO.load`` (which runs code pickled in it)
+        :raises ValueError: one line, when the file cannot be read or does not fit the world
+        """
+        return load_decider(self.decider, world, deterministic, trusted)
 
 
 def load_hierarchy(

@@ -76,13 +76,15 @@ def read_yaml_mapping(path: str | Path, what: str) -> dict[str, Any]:
     """A YAML file holding a mapping (an empty file is an empty mapping), read with ``safe_load``.
 
     :param what: how errors name the file, e.g. "hyperparameter file"
-    :raises HyperparamsError: missing file, bad YAML, or not a mapping
+    :raises HyperparamsError: missing file, not UTF-8 text, bad YAML, or not a mapping
     """
     file = Path(path)
     if not file.is_file():
         raise HyperparamsError(f"{what} not found: {path}")
     try:
-        data = yaml.safe_load(file.read_text())
+        data = yaml.safe_load(file.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise HyperparamsError(f"{what} {path} is not UTF-8 text (byte {err.start}: {err.reason})") from err
     except yaml.YAMLError as err:
         raise HyperparamsError(f"{what} {path} is not valid YAML: {str(err).splitlines()[0]}") from err
     if data is not None and not isinstance(data, dict):

@@ -75,3 +75,42 @@ def run_zoo(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "sb3_gccp.zoo", *args], cwd=cwd, capture_output=True, text=True, timeout=300
     )
+
+
+TINY_WORLD = {"duration": 2.0, "spawn_probability": 0.0, "warmup_time": 0.0}
+"""A world of 2 s episodes (two decisions) on an empty road."""
+
+
+def save_tiny_models(folder: Path) -> tuple[Path, Path]:
+    """An untrained decision-maker and motion-planner of this project's policies with a tiny encoder,
+    saved by SB3 on ``TINY_WORLD`` as ``folder/decider.zip`` and ``folder/planner.zip``."""
+    from sb3_contrib import MaskablePPO
+
+    from gccp_envs.option_env import GCCPDeciderEnv
+    from gccp_envs.planner_env import GCCPPlannerEnv
+    from sb3_gccp.policies import DecisionMakerPolicy, MotionPlannerPolicy
+
+    decider = folder / "decider.zip"
+    kwargs = {"encoder": TINY_ENCODER, "net_arch": {"pi": [8], "vf": [8, 8]}}
+    MaskablePPO(DecisionMakerPolicy, GCCPDeciderEnv(TINY_WORLD), n_steps=16, policy_kwargs=kwargs).save(
+        decider
+    )
+    planner = folder / "planner.zip"
+    kwargs = {"encoder": TINY_ENCODER, "net_arch": {"pi": [8], "vf": [8]}}
+    MaskablePPO(MotionPlannerPolicy, GCCPPlannerEnv(TINY_WORLD), n_steps=16, policy_kwargs=kwargs).save(
+        planner
+    )
+    return decider, planner
+
+
+def rewrite_zip_data(path: Path, **entries: object) -> None:
+    """Replace entries of the ``data`` JSON of an SB3 ``.zip`` in place, as someone editing it would."""
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(path) as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    files["data"] = json.dumps({**json.loads(files["data"]), **entries}).encode()
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)

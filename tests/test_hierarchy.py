@@ -62,23 +62,53 @@ def test_overrides_are_written_apart_from_what_was_trained(tmp_path):
     [
         ({"predictor": "magic"}, "predictor must be one of learned, no_goal, cv, none, got 'magic'"),
         ({"predictor": "learned"}, "a learned predictor needs predictor_weights"),
-        ({"decider": "decider.zip", "planner_file": "x"}, "unknown key(s) planner_file: expected planner,"),
+        ({"planner_file": "x"}, "unknown key(s) planner_file: expected planner,"),
+        ({"world": [1, 2]}, "world must be a map of world config keys"),
         ({"overrides": {"mask": {"margin": 1}}}, "unknown GCCP check key(s) in overrides.mask: margin"),
         ({"overrides": {"reward": {}}}, "overrides must be a map with the keys world and mask"),
         ({"predictor": "none", "overrides": {"mask": {"mask_margin": 1}}}, "has no GCCP module"),
     ],
 )
 def test_a_bad_hierarchy_file_is_named_in_one_line(tmp_path, spec, message):
-    _cv_hierarchy(tmp_path)
-    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump({"planner": "scripted", **spec}))
+    _cv_hierarchy(tmp_path, **spec)
     with pytest.raises(ValueError) as raised:
         load_hierarchy(tmp_path, allow_overrides=True)
     assert message in str(raised.value) and "\n" not in str(raised.value)
 
 
+@pytest.mark.parametrize("key", ["planner", "decider", "predictor", "world"])
+def test_a_hierarchy_file_without_a_required_key_is_named_in_one_line(tmp_path, key):
+    _cv_hierarchy(tmp_path)
+    spec = yaml.safe_load((tmp_path / "hierarchy.yml").read_text())
+    del spec[key]
+    (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(ValueError, match=f"hierarchy.yml: missing key\\(s\\) {key}$"):
+        load_hierarchy(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("/etc/hostname", "decider must name a file inside"),
+        ("../decider.zip", "decider must name a file inside"),
+        ("sub/../../decider.zip", "decider must name a file inside"),
+        ("link.zip", "decider leads out of"),
+    ],
+)
+def test_a_hierarchy_file_naming_a_file_outside_its_folder_is_refused(tmp_path, name, message):
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (tmp_path / "decider.zip").write_bytes(b"outside the folder")
+    (folder / "link.zip").symlink_to(tmp_path / "decider.zip")
+    _cv_hierarchy(folder, decider=name)
+    with pytest.raises(ValueError, match=message) as raised:
+        load_hierarchy(folder)
+    assert "\n" not in str(raised.value)
+
+
 def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
     (tmp_path / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv"}
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv", "world": {}}
     (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
     paper = load_hierarchy(tmp_path).mask_fn()
     assert paper is not None and paper.checker.margin == 0.0 and paper.extrapolate_steps == 0
@@ -100,7 +130,7 @@ def test_hierarchy_file_sets_the_mask_margin_and_extrapolation(tmp_path):
 
 def _cv_hierarchy(folder: Path, **settings: object) -> None:
     (folder / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv", **settings}
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "cv", "world": {}, **settings}
     (folder / "hierarchy.yml").write_text(yaml.safe_dump(spec))
 
 
@@ -138,7 +168,7 @@ def test_bad_mask_settings_are_rejected_in_one_line(tmp_path, settings, message)
 
 def test_mask_settings_need_a_gccp_module(tmp_path):
     (tmp_path / "decider.zip").write_bytes(b"not read here")
-    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "none"}
+    spec = {"planner": "scripted", "decider": "decider.zip", "predictor": "none", "world": {}}
     (tmp_path / "hierarchy.yml").write_text(yaml.safe_dump(spec))
     assert load_hierarchy(tmp_path).mask_fn() is None
     with pytest.raises(ValueError, match="no GCCP module"):

@@ -276,7 +276,7 @@ def test_hierarchy_variants_over_the_scripted_planner(tmp_path):
     assert results["budget"]["planner_pretraining"]["0"]["planner"] == "scripted"
     # Not a planner: one line. A trained planner over runs made with the scripted one: refused.
     bad = reproduce(tmp_path, "--planner", str(tmp_path / "results" / "results.json"), "--methods", "ours")
-    assert bad.returncode == 2 and "not an SB3 .zip" in bad.stderr
+    assert bad.returncode == 2 and "results.json is not a readable SB3 .zip" in bad.stderr
     planner = Path(__file__).resolve().parents[1] / "pretrained" / "planner.zip"
     again = reproduce(tmp_path, "--planner", str(planner), "--methods", "ours")
     assert again.returncode == 2 and "was trained over another planner" in again.stderr

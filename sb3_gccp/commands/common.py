@@ -1,10 +1,12 @@
-"""What several commands share: one-line input errors, ``KEY=VALUE`` options and the world config."""
+"""What several commands share: one-line input errors, ``KEY=VALUE`` options, the world config and
+output paths checked before the work starts."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -47,7 +49,12 @@ def parse_assignments(assignments: list[str], flag: str = "--set") -> dict[str, 
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise CLIError(f"{flag} expects KEY=VALUE, got {item!r}")
-        values[key.strip()] = yaml.safe_load(raw)
+        try:
+            values[key.strip()] = yaml.safe_load(raw)
+        except yaml.YAMLError as err:
+            raise CLIError(
+                f"{flag} {item!r}: the value is not valid YAML ({str(err).splitlines()[0]})"
+            ) from err
     return values
 
 
@@ -57,6 +64,20 @@ def parse_tasks(text: str) -> list[str]:
         return world_config.parse_tasks(text)
     except ValueError as err:
         raise CLIError(str(err)) from err
+
+
+def check_output_path(path: str | None, flag: str) -> None:
+    """Fail before any work, with a one-line reason, if the file of option ``flag`` could not be written.
+
+    :param path: the file asked for (None: the option was not given)
+    """
+    if path is None:
+        return
+    folder = Path(path).parent
+    if not folder.is_dir():
+        raise CLIError(f"{flag} {path}: no folder {folder}")
+    if Path(path).is_dir() or not os.access(folder, os.W_OK):
+        raise CLIError(f"{flag} {path}: not writable")
 
 
 def write_results(path: str, table: dict[str, dict[str, float]], episodes: Sequence[Any]) -> None:
@@ -100,6 +121,16 @@ def add_allow_overrides(parser: argparse.ArgumentParser) -> None:
         "--allow-overrides",
         action="store_true",
         help="run the overrides section of hierarchy.yml (settings the decider was not trained with)",
+    )
+
+
+def add_trust_pickle(parser: argparse.ArgumentParser) -> None:
+    """``--trust-pickle``: load models through SB3's ``load``, which runs code pickled in the files."""
+    parser.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="load the .zip files with SB3's load(), which runs code pickled in them: only for files you "
+        "trust (default: rebuild the policies from plain data and weights, running nothing from the files)",
     )
 
 

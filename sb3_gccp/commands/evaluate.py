@@ -11,7 +11,9 @@ from sb3_gccp.commands.common import (
     CLIError,
     add_allow_overrides,
     add_mask_overrides,
+    add_trust_pickle,
     add_world_overrides,
+    check_output_path,
     parse_assignments,
     parse_tasks,
     write_results,
@@ -42,6 +44,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     add_world_overrides(parser)
     add_mask_overrides(parser)
     add_allow_overrides(parser)
+    add_trust_pickle(parser)
     parser.set_defaults(func=run)
 
 
@@ -54,6 +57,7 @@ def run(args: argparse.Namespace) -> None:
     tasks = parse_tasks(args.tasks)
     if args.episodes_per_task < 1:
         raise CLIError("--episodes-per-task must be at least 1")
+    check_output_path(args.json, "--json")
     th.set_num_threads(1)  # the networks are small: more threads only add overhead
     try:
         env, decider, what = _evaluation_target(args)
@@ -86,14 +90,11 @@ def _evaluation_target(args: argparse.Namespace) -> tuple[Any, Any, str]:
             raise CLIError("--stochastic: baselines are evaluated with their most likely action only")
         if args.mask:
             raise CLIError("--mask: baselines have no GCCP check")
-        env, policy, name = load_baseline(folder, overrides)
+        env, policy, name = load_baseline(folder, overrides, args.trust_pickle)
         return env, policy, f"baseline {name} {args.model}"
     mask = parse_assignments(args.mask, "--mask")
     hierarchy = load_hierarchy(args.model, mask, args.allow_overrides)
-    decider = hierarchy.decider_policy(deterministic=not args.stochastic)
+    env = hierarchy.make_env(overrides, trusted=args.trust_pickle)
+    decider = hierarchy.decider_policy(env.config, not args.stochastic, args.trust_pickle)
     check = "".join(f", {key}={value}" for key, value in mask.items())
-    return (
-        hierarchy.make_env(overrides),
-        decider,
-        f"hierarchy {args.model} (GCCP: {hierarchy.predictor}{check})",
-    )
+    return env, decider, f"hierarchy {args.model} (GCCP: {hierarchy.predictor}{check})"

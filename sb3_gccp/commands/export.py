@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from sb3_gccp.commands.common import CLIError, add_mask_overrides, add_world_overrides, parse_assignments
+from sb3_gccp.commands.common import (
+    CLIError,
+    add_mask_overrides,
+    add_trust_pickle,
+    add_world_overrides,
+    parse_assignments,
+)
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -16,6 +22,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("out", help="a new (or empty) folder")
     add_world_overrides(parser)
     add_mask_overrides(parser)
+    add_trust_pickle(parser)
     parser.set_defaults(func=run)
 
 
@@ -25,7 +32,11 @@ def run(args: argparse.Namespace) -> None:
 
     try:
         written = export_run(
-            args.run, args.out, parse_assignments(args.set), parse_assignments(args.mask, "--mask")
+            args.run,
+            args.out,
+            parse_assignments(args.set),
+            parse_assignments(args.mask, "--mask"),
+            args.trust_pickle,
         )
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err

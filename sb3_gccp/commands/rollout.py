@@ -10,6 +10,7 @@ from gccp_envs.config import TASKS
 from sb3_gccp.commands.common import (
     CLIError,
     add_world_options,
+    check_output_path,
     load_world_config,
     parse_tasks,
     write_results,
@@ -39,6 +40,8 @@ def run(args: argparse.Namespace) -> None:
     tasks = parse_tasks(args.tasks)
     if args.episodes_per_task < 1:
         raise CLIError("--episodes-per-task must be at least 1")
+    check_output_path(args.json, "--json")
+    check_output_path(args.gif, "--gif")
     env = GCCPDeciderEnv(config)
     decider = FarthestSubgoalDecider()
     results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=not args.no_progress)

@@ -10,6 +10,7 @@ from sb3_gccp.commands.common import (
     CLIError,
     add_allow_overrides,
     add_mask_overrides,
+    add_trust_pickle,
     add_world_overrides,
     parse_assignments,
 )
@@ -31,6 +32,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     add_world_overrides(parser)
     add_mask_overrides(parser)
     add_allow_overrides(parser)
+    add_trust_pickle(parser)
     parser.set_defaults(func=run)
 
 
@@ -51,8 +53,8 @@ def run(args: argparse.Namespace) -> None:
     try:
         check_video_path(args.out)
         hierarchy = load_hierarchy(args.model, parse_assignments(args.mask, "--mask"), args.allow_overrides)
-        env = hierarchy.make_env(parse_assignments(args.set))
-        decider = hierarchy.decider_policy()
+        env = hierarchy.make_env(parse_assignments(args.set), trusted=args.trust_pickle)
+        decider = hierarchy.decider_policy(env.config, trusted=args.trust_pickle)
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
     recording = record_episode(env, decider, args.task, args.seed, args.max_steps)

@@ -31,6 +31,7 @@ from torch import nn
 
 from gccp_envs.config import DT, IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
+from sb3_gccp.safe_loading import first_line
 
 STATE_KEYS = ("history", "history_mask", "routes", "routes_mask", "bev")
 """Observation keys the predictors read: the environment state s_t (paper III-B-1)."""
@@ -244,10 +245,33 @@ def load_predictor(path: str | Path, device: str | th.device = "cpu") -> Traject
     :param path: the saved file
     :param device: where to put the weights
     :return: the predictor, in eval mode
+    :raises ValueError: one line, when the file is damaged or not a predictor saved so
     """
-    saved = th.load(path, map_location=device, weights_only=True)
-    predictor = TrajectoryPredictor(
-        PredictorConfig.from_dict(saved["config"]), saved["horizon"], tuple(saved["bev_shape"])
-    )
-    predictor.load_state_dict(saved["state_dict"])
+    if not Path(path).is_file():
+        raise ValueError(f"predictor not found: {path}")
+    try:
+        saved = th.load(path, map_location=device, weights_only=True)
+        predictor = TrajectoryPredictor(
+            PredictorConfig.from_dict(saved["config"]), int(saved["horizon"]), tuple(saved["bev_shape"])
+        )
+        predictor.load_state_dict(saved["state_dict"])
+    except (
+        Exception
+    ) as err:  # a damaged or foreign file: torch, its unpickler and the checks raise many kinds
+        raise ValueError(f"{path} is not a predictor saved by sb3_gccp: {first_line(err)}") from err
     return predictor.to(device).eval()
+
+
+def check_predictor_world(
+    predictor: TrajectoryPredictor, world: IntersectionConfig, path: str | Path
+) -> None:
+    """Raise ``ValueError`` (one line) unless a loaded predictor reads the bird's-eye view of ``world``.
+
+    :param path: how messages name the predictor
+    """
+    given = (1, world.bev_size, world.bev_size)
+    if tuple(predictor.bev_shape) != given:
+        raise ValueError(
+            f"{path} was trained on a bev of shape {tuple(predictor.bev_shape)}, this world gives {given}: "
+            "bev_size differs from its training"
+        )

@@ -120,5 +120,5 @@ def plot_predictions(run_dir: Path, seed: int, path: Path) -> None:
     assert hierarchy.predictor_weights is not None
     world = IntersectionConfig.from_dict(dict(hierarchy.world))
     predictor = load_predictor(hierarchy.predictor_weights)
-    decider = hierarchy.decider_policy()
+    decider = hierarchy.decider_policy(world)
     plot_scene(predictor, world, seed, path, hierarchy.planner, tasks=TASKS, decider=decider)

@@ -6,7 +6,6 @@ import copy
 import difflib
 import json
 import sys
-import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -16,6 +15,7 @@ import yaml
 
 from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.constants import DECIDER_ENV_ID, FLAT_ENV_ID, PLANNER_ENV_ID, SCRIPTED
+from sb3_gccp.frozen import load_planner
 from sb3_gccp.hyperparams import check_keys, default_config_file, load_hyperparams, resolve_policy_kwargs
 from sb3_gccp.networks import EncoderConfig
 from sb3_gccp.reproduce.methods import METHODS, Method
@@ -311,11 +311,9 @@ def prepare(request: ReproduceRequest) -> Plan:
         raise ValueError("--eval-seed must be non-negative")
     if request.torch_threads is not None and request.torch_threads < 1:
         raise ValueError("--torch-threads must be at least 1")
-    if request.planner is not None and request.planner != Path(SCRIPTED):
-        if not request.planner.is_file():
-            raise ValueError(f"planner not found: {request.planner} (give a planner .zip or 'scripted')")
-        if not zipfile.is_zipfile(request.planner):
-            raise ValueError(f"not an SB3 .zip: {request.planner}")
+    given_planner = request.planner if request.planner != Path(SCRIPTED) else None
+    if given_planner is not None and not given_planner.is_file():
+        raise ValueError(f"planner not found: {request.planner} (give a planner .zip or 'scripted')")
     preset = PRESETS[request.preset].with_overrides(request.overrides)
     methods = [m for m in METHODS.values() if m.name in request.methods]
     files: dict[str, dict[str, Any]] = {}
@@ -323,6 +321,8 @@ def prepare(request: ReproduceRequest) -> Plan:
         entry = method_settings(method, preset)
         check_settings(method, entry)
         files[method.name] = {DECIDER_ENV_ID if method.is_hierarchy else FLAT_ENV_ID: entry}
+        if given_planner is not None and method.is_hierarchy:  # a planner that does not fit fails here
+            load_planner(given_planner, IntersectionConfig.from_dict(entry.get("env_kwargs") or {}))
     if request.planner is None and any(m.is_hierarchy for m in methods):
         entry = planner_settings(preset)
         check_settings(None, entry)

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from sb3_contrib import MaskablePPO
 from stable_baselines3.common.monitor import load_results
 
 from gccp_envs.config import DT, TASKS, IntersectionConfig
@@ -35,6 +34,7 @@ from sb3_gccp.hierarchy import load_hierarchy
 from sb3_gccp.reproduce.methods import METHODS, PAPER_RESULTS, Method
 from sb3_gccp.reproduce.plan import Plan, mask_after_episodes
 from sb3_gccp.reproduce.report import aggregate, write_outputs
+from sb3_gccp.safe_loading import SavedModel
 from sb3_gccp.training.baselines import has_checkpoint, load_baseline, train_baseline, write_baseline_spec
 from sb3_gccp.training.decider import train_decider
 from sb3_gccp.training.episodes import read_episodes
@@ -74,7 +74,7 @@ def planner_budget(path: Path, monitor: Path | None) -> dict[str, Any]:
         episodes = len(load_results(str(monitor)))
     if path == Path(SCRIPTED):
         return {"planner": SCRIPTED, "timesteps": 0, "episodes": 0}
-    timesteps = int(MaskablePPO.load(path, device="cpu").num_timesteps)
+    timesteps = SavedModel.read(path).num_timesteps
     return {"planner": str(path), "timesteps": timesteps, "episodes": episodes}
 
 
@@ -185,7 +185,8 @@ def evaluate_once(plan: Plan, method: Method, seed: int, label: str) -> dict[str
 def _evaluation_env_and_policy(method: Method, run_dir: Path) -> tuple[Any, Any]:
     if method.is_hierarchy:
         hierarchy = load_hierarchy(run_dir)
-        return hierarchy.make_env(), hierarchy.decider_policy()
+        option_env = hierarchy.make_env()
+        return option_env, hierarchy.decider_policy(option_env.config)
     if not (run_dir / BASELINE_FILE).is_file():  # trained before baseline runs named their algorithm
         write_baseline_spec(run_dir, method.name)
     env, policy, _ = load_baseline(run_dir)
@@ -214,8 +215,9 @@ def predictor_errors_once(plan: Plan, seed: int) -> dict[str, Any]:
     per_episode = math.ceil(world.duration / (world.decision_period * DT)) + 1
     buffer = EpisodeReplayBuffer(capacity=plan.preset.heldout_episodes * per_episode)
     rng = np.random.default_rng(plan.request.eval_seed + HELDOUT_SEED_OFFSET)
+    env = hierarchy.make_env()
     decisions = collect_decisions(
-        hierarchy.make_env(), hierarchy.decider_policy(), plan.preset.heldout_episodes, buffer, rng
+        env, hierarchy.decider_policy(env.config), plan.preset.heldout_episodes, buffer, rng
     )
     models = {name: load_predictor(path) for name, path in predictors.items()}
     errors = {

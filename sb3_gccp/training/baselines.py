@@ -12,7 +12,8 @@ the motion-planner's networks, named in its zoo file (``zoo_configs/dqn.yml``, `
     checkpoints/    every ``save_every_episodes``: model.zip, replay_buffer.pkl (off-policy
                     algorithms), episodes.csv; ``train_baseline(..., resume=True)`` continues from them
 
-The baselines have no action masks: they are evaluated with ``model.predict(obs, deterministic=True)``.
+The baselines have no action masks: they are evaluated with their policy's ``predict(obs,
+deterministic=True)``, the policy rebuilt without unpickling (:mod:`sb3_gccp.safe_loading`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from sb3_gccp.constants import BASELINE_FILE, CONFIG_FILE, EPISODES_FILE, FLAT_E
 from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
 from sb3_gccp.progress import new_bar
+from sb3_gccp.safe_loading import PolicyKind, file_in_folder, load_policy
 from sb3_gccp.training.episodes import episode_row, read_episodes, write_episodes
 from sb3_gccp.training.run_folder import algorithm_kwargs, make_run_env
 
@@ -211,7 +213,8 @@ def read_baseline_spec(run_dir: Path) -> tuple[str, Path]:
     :raises ValueError: with a one-line reason when something is missing
     """
     spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
-    name, model = str(spec.get("algorithm")), run_dir / str(spec.get("model", MODEL_FILE))
+    name = str(spec.get("algorithm"))
+    model = file_in_folder(run_dir, str(spec.get("model", MODEL_FILE)), f"{run_dir / BASELINE_FILE}: model")
     baseline_algorithm(name)
     if not model.is_file():
         raise ValueError(f"{run_dir / BASELINE_FILE} names a missing file: {model}")
@@ -220,25 +223,31 @@ def read_baseline_spec(run_dir: Path) -> tuple[str, Path]:
     return name, model
 
 
-def load_baseline(run_dir: Path, overrides: dict[str, Any] | None = None) -> tuple[gym.Env, Policy, str]:
+def load_baseline(
+    run_dir: Path, overrides: dict[str, Any] | None = None, trusted: bool = False
+) -> tuple[gym.Env, Policy, str]:
     """A baseline run folder (``baseline.yml``, ``config.yml``, the model) ready to evaluate.
 
     :param overrides: world config keys replacing the run's
+    :param trusted: load the model through its algorithm's ``load`` (which runs code pickled in it)
     :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
-    :raises ValueError: with a one-line reason when something is missing
+    :raises ValueError: with a one-line reason when something is missing, cannot be read or does not fit
     """
     name, model = read_baseline_spec(run_dir)
     settings = read_yaml_mapping(run_dir / CONFIG_FILE, "run config")
     world = IntersectionConfig.from_dict({**(settings.get("env_kwargs") or {}), **(overrides or {})})
-    return gym.make(FLAT_ENV_ID, config=world), baseline_policy(name, model), name
+    env = gym.make(FLAT_ENV_ID, config=world)
+    return env, baseline_policy(name, model, env, trusted), name
 
 
-def baseline_policy(name: str, path: Path) -> Policy:
-    """A trained baseline as an evaluation policy: deterministic, action masks ignored (it has none)."""
-    model = baseline_algorithm(name).load(path, device="cpu")
+def baseline_policy(name: str, path: Path, env: gym.Env, trusted: bool = False) -> Policy:
+    """A trained baseline as an evaluation policy for ``env`` (its spaces checked): deterministic, action
+    masks ignored (it has none)."""
+    kind = PolicyKind(f"{name} baseline", baseline_algorithm(name))
+    policy = load_policy(path, kind, env.observation_space, env.action_space, trusted)
 
     def act(obs: dict[str, np.ndarray], action_mask: np.ndarray) -> int:
-        action, _ = model.predict(obs, deterministic=True)
+        action, _ = policy.predict(obs, deterministic=True)
         return int(action)
 
     return act

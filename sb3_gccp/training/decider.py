@@ -32,6 +32,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
+from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import (
     DECIDER_ENV_ID,
     DECIDER_FILE,
@@ -42,7 +43,7 @@ from sb3_gccp.constants import (
     SCRIPTED,
     TRAINING_CURVE_FILE,
 )
-from sb3_gccp.frozen import load_frozen_policy
+from sb3_gccp.frozen import load_frozen_planner, load_planner
 from sb3_gccp.gccp.callback import BUFFER_FILE, STATE_FILE, GCCPCallback
 from sb3_gccp.gccp.predictor import load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
@@ -62,15 +63,18 @@ from sb3_gccp.training.run_folder import (
 
 
 def make_decider_env(
-    planner_path: str | None = None, torch_threads: int | None = None, **kwargs: Any
+    config: IntersectionConfig,
+    planner_path: str | None = None,
+    torch_threads: int | None = None,
+    **kwargs: Any,
 ) -> gym.Env:
-    """``GCCPDecider-v0`` for a vec-env worker, its options run by the frozen planner ``planner_path``
-    (loaded once per process; None: the scripted planner); ``torch_threads`` limits torch in that
-    process."""
+    """``GCCPDecider-v0`` on ``config`` for a vec-env worker, its options run by the frozen planner
+    ``planner_path`` (loaded once per process; None: the scripted planner); ``torch_threads`` limits
+    torch in that process."""
     if torch_threads is not None:
         th.set_num_threads(torch_threads)
-    planner = None if planner_path is None else load_frozen_policy(planner_path)
-    return gym.make(DECIDER_ENV_ID, planner=planner, **kwargs)
+    planner = None if planner_path is None else load_frozen_planner(planner_path, config)
+    return gym.make(DECIDER_ENV_ID, config=config, planner=planner, **kwargs)
 
 
 def gccp_settings(settings: dict[str, Any]) -> GCCPSettings:
@@ -98,6 +102,9 @@ def train_decider(request: StageRequest) -> Path:
     gccp = gccp_settings(settings)
     world, n_timesteps, n_envs = run_budget(settings, own_keys=("gccp",))
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
+    if request.resume is None and not scripted:
+        assert request.planner is not None
+        load_planner(request.planner, world)  # and a planner that does not fit the world
     if request.resume is None:
         write_run_files(run_dir, settings, request)
         if not scripted:

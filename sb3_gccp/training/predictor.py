@@ -35,7 +35,7 @@ from gccp_envs.config import DT, IntersectionConfig
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.constants import ARGS_FILE, COMMAND_FILE, DECIDER_ENV_ID, METRICS_FILE, PREDICTOR_FILE, SCRIPTED
-from sb3_gccp.frozen import FrozenPolicy
+from sb3_gccp.frozen import FrozenPolicy, load_decider, load_planner
 from sb3_gccp.gccp.mask import GCCPMask
 from sb3_gccp.gccp.predictor import (
     ConstantVelocityPredictor,
@@ -82,22 +82,26 @@ class PredictorRequest:
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
 
-def frozen_planner(planner: Path | None) -> FrozenPolicy | None:
-    """The option env's planner: a frozen ``.zip``, or None (the scripted planner) for ``scripted``/None."""
+def frozen_planner(planner: Path | None, world: IntersectionConfig) -> FrozenPolicy | None:
+    """The option env's planner on ``world``: a frozen ``.zip``, or None (the scripted planner) for
+    ``scripted``/None."""
     if planner is None or str(planner) == SCRIPTED:
         return None
-    return FrozenPolicy(planner)
+    return load_planner(planner, world)
 
 
-def subgoal_chooser(
-    spec: str, rng: np.random.Generator
-) -> Callable[[dict[str, np.ndarray], np.ndarray], int]:
-    """The subgoal policy named by ``spec``: 'random' (uniform over allowed), 'farthest' or a ``.zip``."""
+Chooser = Callable[[dict[str, np.ndarray], np.ndarray], int]
+"""A subgoal policy while decisions are collected: (observation, mask) -> subgoal index."""
+
+
+def subgoal_chooser(spec: str, rng: np.random.Generator, world: IntersectionConfig) -> Chooser:
+    """The subgoal policy named by ``spec``: 'random' (uniform over allowed), 'farthest' or a decider
+    ``.zip`` (sampling its policy on ``world``)."""
     if spec == "random":
         return lambda obs, mask: int(rng.choice(np.flatnonzero(mask)))
     if spec == "farthest":
         return FarthestSubgoalDecider()
-    return FrozenPolicy(spec, deterministic=False)
+    return load_decider(spec, world, deterministic=False)
 
 
 def train_predictor_stage(request: PredictorRequest) -> Path:
@@ -120,6 +124,10 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
     if "goal_condition" in request.predictor_kwargs:
         raise ValueError("--predictor-set goal_condition: the stage trains both (learned and no_goal)")
     PredictorConfig.from_dict(request.predictor_kwargs)
+    rng = np.random.default_rng(request.seed)
+    collector = None  # the models are loaded before the run folder is made: one that does not fit fails here
+    if request.buffer is None:
+        collector = frozen_planner(request.planner, world), subgoal_chooser(request.subgoals, rng, world)
     run_dir = (
         request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     )
@@ -128,9 +136,8 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
     args = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(request).items() if k != "argv"}
     (run_dir / ARGS_FILE).write_text(yaml.safe_dump(args, sort_keys=False))
 
-    rng = np.random.default_rng(request.seed)
     th.manual_seed(request.seed)
-    train, heldout = _data(request, world, rng)
+    train, heldout = _data(request, world, rng, collector)
     train.save(run_dir / "buffer.npz")
     heldout.save(run_dir / "heldout.npz")
     print(f"decisions: {len(train)} for training, {len(heldout)} held out")
@@ -167,19 +174,23 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
 
 
 def _data(
-    request: PredictorRequest, world: IntersectionConfig, rng: np.random.Generator
+    request: PredictorRequest,
+    world: IntersectionConfig,
+    rng: np.random.Generator,
+    collector: tuple[FrozenPolicy | None, Chooser] | None,
 ) -> tuple[EpisodeReplayBuffer, EpisodeReplayBuffer]:
-    """Training and held-out decisions: loaded and split, or collected on disjoint traffic seeds."""
-    if request.buffer is not None:
+    """Training and held-out decisions: loaded and split, or collected on disjoint traffic seeds by
+    ``collector`` (the planner and the subgoal policy)."""
+    if collector is None:
+        assert request.buffer is not None
         loaded = EpisodeReplayBuffer.load(request.buffer)
         arrays = loaded.stored()
         split = round(len(loaded) * (1 - request.heldout_share))
         if not 0 < split < len(loaded):
             raise ValueError(f"--buffer holds {len(loaded)} decisions: too few to hold some out")
         return _buffer_of(arrays, slice(0, split)), _buffer_of(arrays, slice(split, None))
-    assert request.planner is not None
-    env = GCCPDeciderEnv(config=world, planner=frozen_planner(request.planner))
-    choose = subgoal_chooser(request.subgoals, rng)
+    planner, choose = collector
+    env = GCCPDeciderEnv(config=world, planner=planner)
     per_episode = int(np.ceil(world.duration / (world.decision_period * DT))) + 1
     train = EpisodeReplayBuffer(capacity=request.episodes * per_episode)
     heldout = EpisodeReplayBuffer(capacity=max(request.heldout_episodes, 1) * per_episode)
@@ -264,7 +275,7 @@ def plot_scene(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    env = GCCPDeciderEnv(config=world, planner=frozen_planner(planner))
+    env = GCCPDeciderEnv(config=world, planner=frozen_planner(planner, world))
     gccp = GCCPMask(predictor)
     fig, axes = plt.subplots(len(tasks), 2, figsize=(10, 5 * len(tasks)), squeeze=False)
     for i, (row, task) in enumerate(zip(axes, tasks, strict=True)):
