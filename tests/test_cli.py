@@ -59,3 +59,36 @@ def test_a_decider_run_reports_where_its_rolling_success_passed_70_and_90_percen
         "rolling success over 100 episodes first passed 70 % at episode 100, 90 % never; "
         "at the end 90.0 % success, 6.0 % collisions"
     )
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--stage", "planner", "--save-freq", "0"], "--save-freq must be a positive integer, got 0"),
+        (["--stage", "planner", "--save-freq", "-100"], "--save-freq must be a positive integer, got -100"),
+        (
+            ["--stage", "decider", "--planner", "scripted", "--torch-threads", "0"],
+            "--torch-threads must be a positive integer, got 0",
+        ),
+        (
+            ["--stage", "predictor", "--planner", "scripted", "--torch-threads", "0"],
+            "--torch-threads must be a positive integer, got 0",
+        ),
+        (["--stage", "planner", "-v", "-1"], "-v/--verbose must be a non-negative integer, got -1"),
+    ],
+)
+def test_train_rejects_a_run_option_out_of_range_in_one_line_before_writing(tmp_path, capsys, args, message):
+    assert main(["train", *args, "--log-folder", str(tmp_path / "runs")]) == 2
+    assert capsys.readouterr().err == f"sb3_gccp: error: {message}\n"
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_resume_with_an_option_out_of_range_changes_nothing_in_the_run(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yml").write_text("n_timesteps: 32\n")
+    (run / "args.yml").write_text("seed: 0\nsave_freq: 16\n")
+    assert main(["train", "--stage", "planner", "--resume", str(run), "--save-freq", "0"]) == 2
+    assert capsys.readouterr().err == "sb3_gccp: error: --save-freq must be a positive integer, got 0\n"
+    assert sorted(p.name for p in run.iterdir()) == ["args.yml", "config.yml"]
+    assert (run / "args.yml").read_text() == "seed: 0\nsave_freq: 16\n"

@@ -106,14 +106,15 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
         resumed = list(csv.DictReader(file))
     assert resumed[:3] == rows and len(resumed) == 5
     assert [row["masks_on"] for row in resumed[3:]] == ["1", "1"]
+    newest = max((run / "checkpoints").glob("*/complete.json"), key=lambda p: p.stat().st_mtime).parent
     state = subprocess.run(
         [
             sys.executable,
             "-c",
-            "import torch; s = torch.load('checkpoints/gccp_state.pt', weights_only=True); "
+            "import torch; s = torch.load('gccp_state.pt', weights_only=True); "
             "print(s['episodes'], s['gradient_steps'])",
         ],
-        cwd=run,
+        cwd=newest,
         capture_output=True,
         text=True,
         timeout=60,

@@ -48,21 +48,43 @@ def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_c
         assert (run / name).is_file(), name
     assert yaml.safe_load((run / "config.yml").read_text()) == TINY["GCCPPlanner-v0"]
     assert "--seed 3" in (run / "command.txt").read_text()
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
-        "planner_16_steps.zip",
-        "planner_32_steps.zip",
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["planner_16_steps", "planner_32_steps"]
+    assert sorted(p.name for p in (run / "checkpoints" / "planner_16_steps").iterdir()) == [
+        "complete.json",
+        "planner.zip",
     ]
+    assert yaml.safe_load((run / "args.yml").read_text())["save_freq"] == 16
     assert list((run / "monitor").glob("*.monitor.csv"))
     assert list((run / "tb").rglob("events.out.tfevents.*"))
 
-    # Interrupted after the first checkpoint: resume trains the rest of the budget.
-    (run / "checkpoints" / "planner_32_steps.zip").unlink()
+    # The newest checkpoint damaged: resume continues from the one before, with the recorded
+    # --save-freq and a new verbosity, and trains the rest of the budget.
+    model = run / "checkpoints" / "planner_32_steps" / "planner.zip"
+    model.write_bytes(model.read_bytes()[:1000])
     (run / "planner.zip").unlink()
     result = sb3_gccp(
-        "train", "--stage", "planner", "--log-folder", "runs", "--resume", "--save-freq", "16", cwd=tmp_path
+        "train", "--stage", "planner", "--log-folder", "runs", "--resume", "-v", "1", cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr
-    assert (run / "checkpoints" / "planner_32_steps.zip").is_file()
+    assert result.stdout.splitlines()[0] == (
+        f"resuming {Path('runs') / 'planner' / run.name} from checkpoints/planner_16_steps (16 steps, "
+        "0 episodes); passed over checkpoints/planner_32_steps: planner.zip does not match its checksum"
+    )
+    assert "total_timesteps" in result.stdout  # -v 1: SB3's training table
+    assert yaml.safe_load((run / "args.yml").read_text())["verbose"] == 1
+    assert (run / "command.txt").read_text().splitlines()[1].endswith("--resume -v 1")
+    assert (run / "checkpoints" / "planner_32_steps" / "complete.json").is_file()
+    monitor = {p.name: p.read_bytes() for p in (run / "monitor").iterdir()}
+    assert all(data.count(b"t_start") == 1 for data in monitor.values())  # appended to, one header
+
+    # A resume that fails (a planner run is no decider run) leaves the run as it was.
+    result = sb3_gccp("train", "--stage", "decider", "--resume", str(run), cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "sb3_gccp: error: checkpoints/planner_32_steps holds no predictor.pt: not a checkpoint of this stage"
+    ]
+    assert {p.name: p.read_bytes() for p in (run / "monitor").iterdir()} == monitor
+    assert len((run / "command.txt").read_text().splitlines()) == 2
     check = subprocess.run(
         [
             sys.executable,

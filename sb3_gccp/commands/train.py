@@ -40,10 +40,20 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         metavar="RUN_DIR",
         help="continue a run from its last checkpoint (default: the newest run)",
     )
-    parser.add_argument("--save-freq", type=int, default=10_000, help="env steps between checkpoints")
+    # The run options default to None, "not given": a resume keeps the run's own (args.yml).
+    parser.add_argument(
+        "--save-freq",
+        type=int,
+        help="planner stage: env steps between checkpoints (default 10000; a resume keeps the run's)",
+    )
     add_torch_threads(parser, "the learner")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
+    parser.set_defaults(torch_threads=None)
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        help="a progress bar (default: on; a resume keeps the run's)",
+    )
+    parser.add_argument("-v", "--verbose", type=int, help="SB3 verbosity: 0 (default), 1, 2")
     parser.add_argument(
         "--planner",
         help="frozen motion-planner .zip (decider and predictor stages), or 'scripted' (the scripted "
@@ -97,7 +107,7 @@ def run(args: argparse.Namespace) -> None:
         n_timesteps=args.n_timesteps,
         log_folder=Path(args.log_folder),
         resume=resume,
-        progress_bar=not args.no_progress,
+        progress_bar=args.progress,
         verbose=args.verbose,
         save_freq=args.save_freq,
         torch_threads=args.torch_threads,
@@ -136,6 +146,7 @@ def sample_efficiency(run_dir: Path) -> str:
 
 def _train_predictor(args: argparse.Namespace) -> None:
     from sb3_gccp.training.predictor import PredictorRequest, train_predictor_stage
+    from sb3_gccp.training.run_folder import RunOptions
 
     world = dataclasses.asdict(load_world_config(None, args.set))
     request = PredictorRequest(
@@ -148,8 +159,8 @@ def _train_predictor(args: argparse.Namespace) -> None:
         eval_every=args.eval_every,
         seed=args.seed,
         log_folder=Path(args.log_folder),
-        progress_bar=not args.no_progress,
-        torch_threads=args.torch_threads,
+        progress_bar=args.progress is not False,
+        torch_threads=RunOptions.torch_threads if args.torch_threads is None else args.torch_threads,
         world=world,
         predictor_kwargs=parse_assignments(args.predictor_set, "--predictor-set"),
         argv=["sb3_gccp", *sys.argv[1:]],

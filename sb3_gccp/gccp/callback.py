@@ -15,7 +15,9 @@ Algorithm 1 of the paper, as an SB3 callback on MaskablePPO over ``GCCPDecider-v
 
 It logs the predictor loss, ADE/FDE on the latest decisions, the share of masked candidates and the
 success and collision rates to TensorBoard, keeps one row per episode for the training curve, and
-saves everything needed to resume (model, predictor, optimiser, replay buffer, counters).
+checkpoints everything needed to resume (model, predictor, optimiser, replay buffer, counters) at the
+start of the rollout after every ``save_every_episodes``-th episode: there PPO's last update is done,
+so that a resume collects the rollouts an uninterrupted run would.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 from tqdm.auto import tqdm
@@ -38,6 +41,7 @@ from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors
 from sb3_gccp.progress import new_bar
+from sb3_gccp.training.checkpoints import Checkpoint, Writer, save_checkpoint
 from sb3_gccp.training.episodes import episode_row, read_episodes, write_episodes
 
 STATE_FILE = "gccp_state.pt"
@@ -54,6 +58,7 @@ class GCCPCallback(BaseCallback):
     :param buffer: the replay buffer D
     :param seed: seeds the predictor's batch sampling
     :param progress_bar: show a progress bar over episodes
+    :param run_dir: the run folder whose ``checkpoints/`` it writes (None: no checkpoints)
     """
 
     def __init__(
@@ -63,6 +68,7 @@ class GCCPCallback(BaseCallback):
         buffer: EpisodeReplayBuffer,
         seed: int = 0,
         progress_bar: bool = False,
+        run_dir: Path | None = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
@@ -84,7 +90,8 @@ class GCCPCallback(BaseCallback):
         self.episodes = 0
         self.masks_on = False
         self.history: list[dict[str, Any]] = []
-        self.checkpoint_dir: Path | None = None
+        self.run_dir = run_dir
+        self._checkpointed_at = 0
         self._staged: list[list[tuple[Any, ...]]] = []
         self._losses: list[float] = []
         self._masked: list[float] = []
@@ -99,6 +106,11 @@ class GCCPCallback(BaseCallback):
         )
         if self.masks_on:  # resumed after N_m
             self.push_masks()
+
+    def _on_rollout_start(self) -> None:
+        every = self.settings.save_every_episodes
+        if self.run_dir is not None and self.episodes // every > self._checkpointed_at // every:
+            self.checkpoint(self.model)
 
     def _on_step(self) -> bool:
         infos: list[dict[str, Any]] = self.locals["infos"]
@@ -162,8 +174,6 @@ class GCCPCallback(BaseCallback):
         ):
             self.masks_on = True
             self.push_masks()
-        if self.checkpoint_dir is not None and self.episodes % self.settings.save_every_episodes == 0:
-            self.save(self.checkpoint_dir, with_model=True)
 
     def push_masks(self) -> None:
         """Give every env worker a GCCP mask with a copy of the current predictor."""
@@ -172,31 +182,38 @@ class GCCPCallback(BaseCallback):
         self.training_env.env_method("set_mask_fn", self.settings.check.make_mask(predictor))
 
     # --- saving and resuming -------------------------------------------------------------------
-    def save(self, folder: Path, with_model: bool = False) -> None:
-        """Write the callback's state (and, with ``with_model``, the model) into ``folder``."""
-        folder.mkdir(parents=True, exist_ok=True)
-        if with_model:
-            self.model.save(folder / DECIDER_FILE)
-        if isinstance(self.predictor, TrajectoryPredictor):
-            save_predictor(self.predictor, folder / PREDICTOR_FILE)
-        if self.trainer is not None:
-            self.buffer.save(folder / BUFFER_FILE)
+    def checkpoint(self, model: BaseAlgorithm) -> Checkpoint:
+        """Write a checkpoint of ``model`` and of the callback's state into the run folder."""
+        assert self.run_dir is not None
         state = {
             "episodes": self.episodes,
             "masks_on": self.masks_on,
             "optimizer": self.trainer.optimizer.state_dict() if self.trainer is not None else {},
             "gradient_steps": self.trainer.gradient_steps if self.trainer is not None else 0,
+            "rng": self.rng.bit_generator.state,
         }
-        th.save(state, folder / STATE_FILE)
-        write_episodes(self.history, folder / EPISODES_FILE)
+        files: dict[str, Writer] = {DECIDER_FILE: model.save}
+        if isinstance(self.predictor, TrajectoryPredictor):
+            predictor = self.predictor
+            files[PREDICTOR_FILE] = lambda path: save_predictor(predictor, path)
+        if self.trainer is not None:
+            files[BUFFER_FILE] = self.buffer.save
+        files[STATE_FILE] = lambda path: th.save(state, path)
+        history = list(self.history)
+        files[EPISODES_FILE] = lambda path: write_episodes(history, path)
+        self._checkpointed_at = self.episodes
+        return save_checkpoint(self.run_dir, "decider", model.num_timesteps, files)
 
-    def restore(self, folder: Path) -> None:
-        """Read the state written by :meth:`save` (the predictor's weights are loaded by the caller)."""
-        state = th.load(folder / STATE_FILE, weights_only=True)
+    def restore(self, checkpoint: Checkpoint) -> None:
+        """Read the state written by :meth:`checkpoint` (the model, predictor weights and replay buffer are
+        loaded by the caller)."""
+        state = th.load(checkpoint.file(STATE_FILE), weights_only=True)
         self.episodes = int(state["episodes"])
         self.masks_on = bool(state["masks_on"])
         if self.trainer is not None:
             self.trainer.optimizer.load_state_dict(state["optimizer"])
             self.trainer.gradient_steps = int(state["gradient_steps"])
-        self.history = read_episodes(folder / EPISODES_FILE)
+        self.rng.bit_generator.state = state["rng"]
+        self.history = read_episodes(checkpoint.file(EPISODES_FILE))
         self._recent.extend(self.history[-100:])
+        self._checkpointed_at = self.episodes

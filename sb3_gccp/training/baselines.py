@@ -172,7 +172,7 @@ def train_baseline(
     if not resume:
         run_dir.mkdir(parents=True, exist_ok=False)
         (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(settings, sort_keys=True))
-    env = make_run_env(FLAT_ENV_ID, n_envs, seed, world, run_dir)
+    env = make_run_env(FLAT_ENV_ID, n_envs, seed, {"config": world}, run_dir)
     history = read_episodes(checkpoints / EPISODES_FILE) if resume else []
     recorder = EpisodeRecorder(episodes, description, progress_bar, checkpoints, save_every_episodes, history)
     try:

@@ -11,7 +11,8 @@ Run folder (``<log_folder>/decider/GCCPDecider-v0_<seed>_<time>/``), complete fo
     episodes.csv                        one row per training episode (task, success, crash, masks on)
     training_curve.png, metrics.json    success and collision rate per episode; where it passed 70 %
     monitor/, tb/                       Monitor CSVs and TensorBoard logs
-    checkpoints/                        the latest decider.zip, predictor, optimiser and replay buffer
+    checkpoints/                        the two newest checkpoints: decider.zip, predictor, optimiser,
+                                        replay buffer, episode rows (:mod:`sb3_gccp.training.checkpoints`)
 
 ``--stage all`` trains the planner (``GCCPPlanner-v0`` entry of the same file) and then the decider
 with it.
@@ -23,14 +24,14 @@ import json
 import math
 import shutil
 from dataclasses import asdict, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch as th
-from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import (
@@ -44,21 +45,27 @@ from sb3_gccp.constants import (
     TRAINING_CURVE_FILE,
 )
 from sb3_gccp.frozen import load_frozen_planner, load_planner
-from sb3_gccp.gccp.callback import BUFFER_FILE, STATE_FILE, GCCPCallback
+from sb3_gccp.gccp.callback import BUFFER_FILE, GCCPCallback
 from sb3_gccp.gccp.predictor import load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.hyperparams import HyperparamsError, load_hyperparams
-from sb3_gccp.training.episodes import rolling_rate, write_episodes
+from sb3_gccp.training.checkpoints import Checkpoint, write_atomically
+from sb3_gccp.training.episodes import rolling_rate
 from sb3_gccp.training.planner import train_planner
 from sb3_gccp.training.run_folder import (
+    Run,
     StageRequest,
     algorithm_kwargs,
-    make_model,
+    continue_model,
+    load_model,
+    make_run_env,
+    new_model,
     open_run,
+    prepare_run_folder,
+    resume_checkpoint,
     run_budget,
-    write_run_files,
 )
 
 
@@ -88,74 +95,93 @@ def gccp_settings(settings: dict[str, Any]) -> GCCPSettings:
 def train_decider(request: StageRequest) -> Path:
     """Train the decision-maker with the frozen planner ``request.planner``; return the run folder.
 
-    With ``request.resume`` (a decider run folder) training continues from its latest checkpoint,
-    predictor, optimiser and replay buffer included, up to the same episode budget.
+    With ``request.resume`` (a decider run folder) training continues from its newest complete
+    checkpoint, predictor, optimiser and replay buffer included, up to the same episode budget.
     """
-    if request.torch_threads is not None:
-        th.set_num_threads(request.torch_threads)
     scripted = request.planner == Path(SCRIPTED)
     if request.resume is None and not scripted and (request.planner is None or not request.planner.is_file()):
         raise HyperparamsError(f"planner not found: {request.planner} (give --planner PATH.zip)")
-    run_dir, settings, seed = open_run(request, DECIDER_ENV_ID, "decider")
-    if request.resume is not None:
-        scripted = not (run_dir / PLANNER_FILE).is_file()
-    gccp = gccp_settings(settings)
-    world, n_timesteps, n_envs = run_budget(settings, own_keys=("gccp",))
+    run = open_run(request, DECIDER_ENV_ID, "decider")
+    th.set_num_threads(run.options.torch_threads)
+    if run.resumed:
+        scripted = not (run.dir / PLANNER_FILE).is_file()
+    gccp = gccp_settings(run.settings)
+    world, n_timesteps, n_envs = run_budget(run.settings, own_keys=("gccp",))
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
-    if request.resume is None and not scripted:
+    if not run.resumed and not scripted:
         assert request.planner is not None
         load_planner(request.planner, world)  # and a planner that does not fit the world
-    if request.resume is None:
-        write_run_files(run_dir, settings, request)
-        if not scripted:
-            assert request.planner is not None
-            shutil.copyfile(request.planner, run_dir / PLANNER_FILE)
-
-    env = make_vec_env(
+    checkpoint = resume_checkpoint(run)
+    callback = GCCPCallback(
+        gccp,
+        predictor,
+        EpisodeReplayBuffer(gccp.buffer_capacity),
+        seed=run.seed,
+        progress_bar=run.options.progress_bar,
+        run_dir=run.dir,
+    )
+    model = None if checkpoint is None else restore_decider(checkpoint, callback, run)
+    planner = request.planner
+    copies = {} if scripted or planner is None else {PLANNER_FILE: partial(shutil.copyfile, planner)}
+    prepare_run_folder(run, request, checkpoint, copies)
+    env = make_run_env(
         make_decider_env,
-        n_envs=n_envs,
-        seed=seed,
-        env_kwargs={
+        n_envs,
+        run.seed,
+        {
             "config": world,
-            "planner_path": None if scripted else str((run_dir / PLANNER_FILE).resolve()),
+            "planner_path": None if scripted else str((run.dir / PLANNER_FILE).resolve()),
             "torch_threads": 1 if n_envs > 1 else None,
         },
-        monitor_dir=str(run_dir / "monitor"),
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+        run.dir,
+        append=model is not None,
     )
-    checkpoints = run_dir / "checkpoints"
-    resumed = request.resume is not None and (checkpoints / STATE_FILE).is_file()
-    buffer = EpisodeReplayBuffer(gccp.buffer_capacity)
-    if resumed and (checkpoints / BUFFER_FILE).is_file():
-        buffer = EpisodeReplayBuffer.load(checkpoints / BUFFER_FILE, gccp.buffer_capacity)
-    if resumed and predictor is not None and gccp.predictor in LEARNED:
-        predictor.load_state_dict(load_predictor(checkpoints / PREDICTOR_FILE).state_dict())
-    callback = GCCPCallback(gccp, predictor, buffer, seed=seed, progress_bar=request.progress_bar)
-    callback.checkpoint_dir = checkpoints
-    if resumed:
-        callback.restore(checkpoints)
-    kwargs = algorithm_kwargs(
-        {k: v for k, v in settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
-    )
-    model = make_model(
-        env, run_dir, checkpoints / DECIDER_FILE if resumed else None, seed, request.verbose, kwargs
-    )
+    if model is None:
+        kwargs = algorithm_kwargs(
+            {k: v for k, v in run.settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+        )
+        model = new_model(env, run, kwargs)
+    else:
+        continue_model(model, env, run)
     try:
         if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
             model.learn(
                 n_timesteps - model.num_timesteps,
                 callback=callback,
-                reset_num_timesteps=not resumed,
+                reset_num_timesteps=checkpoint is None,
                 tb_log_name="decider",
             )
     finally:
         env.close()
-    model.save(run_dir / DECIDER_FILE)
-    callback.save(checkpoints, with_model=False)
-    shutil.copyfile(run_dir / DECIDER_FILE, checkpoints / DECIDER_FILE)
-    if (checkpoints / PREDICTOR_FILE).is_file():
-        shutil.copyfile(checkpoints / PREDICTOR_FILE, run_dir / PREDICTOR_FILE)
-    write_episodes(callback.history, run_dir / EPISODES_FILE)
+    write_decider_run(run.dir, callback.checkpoint(model), callback.history, gccp, scripted, world)
+    return run.dir
+
+
+def restore_decider(checkpoint: Checkpoint, callback: GCCPCallback, run: Run) -> MaskablePPO:
+    """The decision-maker of a checkpoint; the callback gets its predictor, replay buffer and state."""
+    gccp = callback.settings
+    if BUFFER_FILE in checkpoint.files:
+        callback.buffer = EpisodeReplayBuffer.load(checkpoint.file(BUFFER_FILE), gccp.buffer_capacity)
+    if callback.predictor is not None and gccp.predictor in LEARNED:
+        callback.predictor.load_state_dict(load_predictor(checkpoint.file(PREDICTOR_FILE)).state_dict())
+    callback.restore(checkpoint)
+    return load_model(checkpoint.file(DECIDER_FILE), run)
+
+
+def write_decider_run(
+    run_dir: Path,
+    final: Checkpoint,
+    history: list[dict[str, Any]],
+    gccp: GCCPSettings,
+    scripted: bool,
+    world: IntersectionConfig,
+) -> None:
+    """The files of a finished decider run, from its final checkpoint: what ``evaluate`` loads
+    (``decider.zip``, ``predictor.pt``, ``hierarchy.yml``), ``episodes.csv``, ``metrics.json`` and the
+    training curve."""
+    for name in (DECIDER_FILE, PREDICTOR_FILE, EPISODES_FILE):
+        if name in final.files:
+            write_atomically(run_dir / name, partial(shutil.copyfile, final.file(name)))
     Hierarchy(
         run_dir,
         decider_file=DECIDER_FILE,
@@ -165,10 +191,9 @@ def train_decider(request: StageRequest) -> Path:
         trained_check=gccp.check,
         trained_world=asdict(world),
     ).write()
-    metrics = training_metrics(callback.history, gccp)
-    (run_dir / METRICS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
-    plot_training_curve(callback.history, gccp, run_dir / TRAINING_CURVE_FILE)
-    return run_dir
+    metrics = json.dumps(training_metrics(history, gccp), indent=2) + "\n"
+    write_atomically(run_dir / METRICS_FILE, lambda path: path.write_text(metrics))
+    write_atomically(run_dir / TRAINING_CURVE_FILE, lambda path: plot_training_curve(history, gccp, path))
 
 
 def train_all(request: StageRequest) -> tuple[Path, Path]:

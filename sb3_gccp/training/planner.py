@@ -8,28 +8,32 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
 from sb3_contrib import MaskablePPO
-from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, StopTrainingOnMaxEpisodes
+from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import PLANNER_ENV_ID, PLANNER_FILE
 from sb3_gccp.hyperparams import HyperparamsError
 from sb3_gccp.progress import StepBar
+from sb3_gccp.training.checkpoints import ModelCheckpointCallback, save_model_checkpoint, write_atomically
 from sb3_gccp.training.imitation import BehaviourCloningCallback, ExpertData, ImitationSettings, imitate
 from sb3_gccp.training.run_folder import (
     StageRequest,
     algorithm_kwargs,
-    latest_checkpoint,
-    make_model,
+    continue_model,
+    load_model,
     make_run_env,
+    new_model,
     open_run,
+    prepare_run_folder,
+    resume_checkpoint,
     run_budget,
-    write_run_files,
 )
 
 
@@ -40,32 +44,32 @@ def train_planner(request: StageRequest) -> Path:
     DAgger rounds if asked (:mod:`sb3_gccp.training.imitation`; ``imitation.json`` records how well, and the
     clone is saved as ``planner_cloned.zip``), and PPO continues from there for ``n_timesteps`` (0:
     cloning only), with cloning steps between its updates if ``imitation.bc_steps`` asks. With
-    ``request.resume`` (a run folder), training continues from its last checkpoint with the run's own
-    resolved config, up to the same total budget.
+    ``request.resume`` (a run folder), training continues from its newest complete checkpoint with the
+    run's own resolved config, up to the same total budget.
     """
-    if request.torch_threads is not None:
-        th.set_num_threads(request.torch_threads)
-    run_dir, settings, seed = open_run(request, PLANNER_ENV_ID, "planner")
-    imitation = imitation_settings(settings)
-    world, n_timesteps, n_envs = run_budget(settings, (IMITATION_KEY,), allow_zero=imitation is not None)
-    if request.resume is None:
-        write_run_files(run_dir, settings, request)
-    env = make_run_env(PLANNER_ENV_ID, n_envs, seed, world, run_dir)
-    checkpoint = latest_checkpoint(run_dir) if request.resume is not None else None
-    ppo_settings = {k: v for k, v in settings.items() if k != IMITATION_KEY}
-    model = make_model(
-        env, run_dir, checkpoint, seed, request.verbose, algorithm_kwargs(ppo_settings, n_timesteps)
-    )
+    run = open_run(request, PLANNER_ENV_ID, "planner")
+    th.set_num_threads(run.options.torch_threads)
+    imitation = imitation_settings(run.settings)
+    world, n_timesteps, n_envs = run_budget(run.settings, (IMITATION_KEY,), allow_zero=imitation is not None)
+    checkpoint = resume_checkpoint(run)
+    model = None if checkpoint is None else load_model(checkpoint.file(PLANNER_FILE), run)
+    prepare_run_folder(run, request, checkpoint)
+    env = make_run_env(PLANNER_ENV_ID, n_envs, run.seed, {"config": world}, run.dir, append=model is not None)
+    if model is None:
+        ppo_settings = {k: v for k, v in run.settings.items() if k != IMITATION_KEY}
+        model = new_model(env, run, algorithm_kwargs(ppo_settings, n_timesteps))
+    else:
+        continue_model(model, env, run)
     callbacks: list[BaseCallback] = [
-        CheckpointCallback(
-            max(request.save_freq // n_envs, 1), str(run_dir / "checkpoints"), name_prefix="planner"
-        )
+        ModelCheckpointCallback(run.dir, "planner", run.options.save_freq, PLANNER_FILE)
     ]
     if imitation is not None:
-        data = imitation_data(model, run_dir, world, imitation, seed, checkpoint, request.progress_bar)
+        data = imitation_data(
+            model, run.dir, world, imitation, run.seed, checkpoint is not None, run.options.progress_bar
+        )
         if imitation.bc_steps > 0:
-            callbacks.append(BehaviourCloningCallback(data, imitation, seed))
-    if request.progress_bar:
+            callbacks.append(BehaviourCloningCallback(data, imitation, run.seed))
+    if run.options.progress_bar:
         callbacks.append(StepBar(n_timesteps))
     if request.max_episodes is not None:
         # SB3 counts the limit per worker.
@@ -81,8 +85,9 @@ def train_planner(request: StageRequest) -> Path:
             )
     finally:
         env.close()
-    path = run_dir / PLANNER_FILE
-    model.save(path)
+    final = save_model_checkpoint(model, run.dir, "planner", PLANNER_FILE)
+    path = run.dir / PLANNER_FILE
+    write_atomically(path, lambda temporary: shutil.copyfile(final.folder / PLANNER_FILE, temporary))
     return path
 
 
@@ -98,23 +103,25 @@ def imitation_data(
     world: IntersectionConfig,
     settings: ImitationSettings,
     seed: int,
-    checkpoint: Path | None,
+    resumed: bool,
     progress: bool,
 ) -> ExpertData:
-    """A new run clones the expert into ``model`` (writing ``imitation.json``, the cloned planner and,
-    if PPO keeps a cloning term, the data set); a resumed one reads the data set back."""
+    """A new run (or one resumed before its first checkpoint) clones the expert into ``model`` (writing
+    ``imitation.json``, the cloned planner and, if PPO keeps a cloning term, the data set); one resumed
+    from a checkpoint reads the data set back."""
     path = run_dir / IMITATION_DATA
-    if checkpoint is not None:
+    if resumed:
         if settings.bc_steps == 0:
             return ExpertData({}, np.empty(0), np.empty(0), np.empty(0), 0)
         if not path.is_file():
             raise HyperparamsError(f"cannot resume the cloning term: {path} is missing")
         return ExpertData.load(path)
     record, data = imitate(model, world, settings, seed, progress)
-    (run_dir / "imitation.json").write_text(json.dumps(record, indent=2) + "\n")
-    model.save(run_dir / CLONED_PLANNER)
+    summary = json.dumps(record, indent=2) + "\n"
+    write_atomically(run_dir / "imitation.json", lambda temporary: temporary.write_text(summary))
+    write_atomically(run_dir / CLONED_PLANNER, model.save)
     if settings.bc_steps > 0:
-        data.save(path)
+        write_atomically(path, data.save)
     return data
 
 

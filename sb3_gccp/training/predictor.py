@@ -31,7 +31,7 @@ import torch as th
 import yaml
 from torch import nn
 
-from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.config import DT, IntersectionConfig, require_int
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.constants import ARGS_FILE, COMMAND_FILE, DECIDER_ENV_ID, METRICS_FILE, PREDICTOR_FILE, SCRIPTED
@@ -107,6 +107,7 @@ def subgoal_chooser(spec: str, rng: np.random.Generator, world: IntersectionConf
 def train_predictor_stage(request: PredictorRequest) -> Path:
     """Run the predictor stage; return the run folder (see the module docstring)."""
     if request.torch_threads is not None:
+        require_int("--torch-threads", request.torch_threads)
         th.set_num_threads(request.torch_threads)
     if request.planner is None and request.buffer is None:
         raise ValueError("give --planner (to collect decisions) or --buffer (a saved replay buffer)")

@@ -4,30 +4,38 @@ Run folder layout (rl-zoo's, plus our checkpoints)::
 
     <log_folder>/<stage>/<env_id>_<seed>_<time>/
         config.yml      resolved hyperparameters and world config
-        args.yml        the command's arguments
-        command.txt     the command line
+        args.yml        the command's arguments and the run's options (:class:`RunOptions`)
+        command.txt     the command line, and that of every resume after it
         monitor/        one Monitor CSV per env worker
         tb/             TensorBoard logs
-        checkpoints/    <stage>_<steps>_steps.zip every ``save_freq`` steps
+        checkpoints/    the two newest checkpoints (:mod:`sb3_gccp.training.checkpoints`)
         <stage>.zip     the trained model
+
+A resume continues from the newest complete checkpoint: the Monitor files are cut back to it and
+appended to, the env workers and torch are seeded with the run's seed plus the checkpoint's step count
+(the run's first episodes are not played again), and the options of ``args.yml`` hold unless given
+again.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import shlex
 import sys
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import yaml
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-from gccp_envs.config import IntersectionConfig
+from gccp_envs.config import IntersectionConfig, require_int
 from sb3_gccp.constants import ARGS_FILE, COMMAND_FILE, CONFIG_FILE
 from sb3_gccp.hyperparams import (
     HyperparamsError,
@@ -38,23 +46,76 @@ from sb3_gccp.hyperparams import (
     resolve_policy_kwargs,
     resolve_schedule,
 )
+from sb3_gccp.training.checkpoints import (
+    MONITOR_DIR,
+    Checkpoint,
+    Writer,
+    find_checkpoint,
+    monitor_start_times,
+    resume_message,
+    rewind_run,
+    write_atomically,
+)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run trains, as opposed to what it learns: kept in ``args.yml`` and reused on resume."""
+
+    save_freq: int = 10_000
+    """Planner stage: environment steps (over all workers) between checkpoints, each taken after the
+    next PPO update (the decider stage checkpoints every ``gccp.save_every_episodes`` episodes)."""
+    verbose: int = 0
+    """SB3's verbosity: 0 quiet, 1 training statistics, 2 debug."""
+    torch_threads: int = 1
+    """Torch threads of the learner process (1: the networks are small and the env workers need the
+    other cores)."""
+    progress_bar: bool = True
+    """A progress bar (a plain line a minute when stderr is a file)."""
+
+    def __post_init__(self) -> None:
+        require_int("--save-freq", self.save_freq)
+        require_int("-v/--verbose", self.verbose, minimum=0)
+        require_int("--torch-threads", self.torch_threads)
+        if not isinstance(self.progress_bar, bool):
+            raise ValueError(f"progress_bar must be true or false, got {self.progress_bar!r}")
+
+    @classmethod
+    def resolve(cls, given: Mapping[str, Any], recorded: Mapping[str, Any] | None = None) -> RunOptions:
+        """The options ``given`` (None: not given), else the ``recorded`` ones of a resumed run, else the
+        defaults.
+
+        :raises ValueError: one line naming an option out of range
+        """
+        names = [f.name for f in dataclasses.fields(cls)]
+        values = {k: v for k, v in (recorded or {}).items() if k in names}
+        values.update({k: v for k, v in given.items() if v is not None})
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as plain data for ``args.yml``."""
+        return dataclasses.asdict(self)
 
 
 @dataclass
 class StageRequest:
-    """What the user asked of a training stage."""
+    """What the user asked of a training stage.
+
+    The run options (``progress_bar``, ``verbose``, ``save_freq``, ``torch_threads``) are None when not
+    given: a resumed run keeps its own, a new run takes :class:`RunOptions`' defaults.
+    """
 
     config_file: Path
     seed: int = 0
     n_timesteps: int | None = None
     log_folder: Path = Path("runs")
     resume: Path | None = None
-    progress_bar: bool = True
-    verbose: int = 0
-    save_freq: int = 10_000
-    """Environment steps between checkpoints (over all workers)."""
+    progress_bar: bool | None = None
+    verbose: int | None = None
+    save_freq: int | None = None
+    """Environment steps between checkpoints (over all workers, planner stage)."""
     torch_threads: int | None = None
-    """Torch threads of the learner process (the env workers use no torch); ``None`` keeps torch's."""
+    """Torch threads of the learner process (the env workers use one each)."""
     planner: Path | None = None
     """The frozen motion-planner ``.zip`` (decider stage)."""
     max_episodes: int | None = None
@@ -63,11 +124,20 @@ class StageRequest:
     """The folder of a new run; None: a new ``<log_folder>/<stage>/<env_id>_<seed>_<time>``."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
+    def given_options(self) -> dict[str, Any]:
+        """The run options of the request, None where not given."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(RunOptions)}
 
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    """The checkpoint with the most steps in a run folder, if any."""
-    checkpoints = list((run_dir / "checkpoints").glob("*_steps.zip"))
-    return max(checkpoints, key=lambda p: int(p.stem.split("_")[-2]), default=None)
+
+@dataclass(frozen=True)
+class Run:
+    """A stage's run: its folder, resolved settings, seed and options, and whether it is resumed."""
+
+    dir: Path
+    settings: dict[str, Any]
+    seed: int
+    options: RunOptions
+    resumed: bool
 
 
 def latest_run(stage_dir: Path) -> Path | None:
@@ -76,21 +146,39 @@ def latest_run(stage_dir: Path) -> Path | None:
     return max(runs, key=lambda p: (p / CONFIG_FILE).stat().st_mtime, default=None)
 
 
-def open_run(request: StageRequest, env_id: str, stage: str) -> tuple[Path, dict[str, Any], int]:
-    """The run folder, settings and seed of a stage: a new run from the zoo file's ``env_id`` entry, or
-    with ``request.resume`` the run's own resolved config and seed. Nothing is written yet."""
+def open_run(request: StageRequest, env_id: str, stage: str) -> Run:
+    """The run of a stage: a new one from the zoo file's ``env_id`` entry, or with ``request.resume``
+    the run's own resolved config, seed and options (those given again replace them). Nothing is
+    written yet.
+
+    :raises HyperparamsError: not a run folder
+    :raises ValueError: one line naming an option out of range
+    """
     if request.resume is None:
+        options = RunOptions.resolve(request.given_options())
         settings = load_hyperparams(request.config_file, env_id)
         if request.n_timesteps is not None:
             settings["n_timesteps"] = request.n_timesteps
         stamp = time.strftime("%Y%m%d-%H%M%S")
         run_dir = request.run_dir or request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}"
-        return run_dir, settings, request.seed
+        return Run(run_dir, settings, request.seed, options, resumed=False)
     run_dir = request.resume
     if not (run_dir / CONFIG_FILE).is_file():
         raise HyperparamsError(f"not a run folder (no config.yml): {run_dir}")
     settings = yaml.safe_load((run_dir / CONFIG_FILE).read_text())
-    return run_dir, settings, int(yaml.safe_load((run_dir / ARGS_FILE).read_text())["seed"])
+    args = yaml.safe_load((run_dir / ARGS_FILE).read_text())
+    options = RunOptions.resolve(request.given_options(), args)
+    return Run(run_dir, settings, int(args["seed"]), options, resumed=True)
+
+
+def resume_checkpoint(run: Run) -> Checkpoint | None:
+    """The checkpoint a resumed run continues from (None for a new run, or when none is complete),
+    announced in one line. Nothing is written yet."""
+    if not run.resumed:
+        return None
+    checkpoint, damaged = find_checkpoint(run.dir)
+    print(resume_message(run.dir, checkpoint, damaged), flush=True)
+    return checkpoint
 
 
 def run_budget(
@@ -108,14 +196,25 @@ def run_budget(
     return world, n_timesteps, n_envs
 
 
-def make_model(
-    env: VecEnv, run_dir: Path, checkpoint: Path | None, seed: int, verbose: int, kwargs: dict[str, Any]
-) -> MaskablePPO:
-    """MaskablePPO logging to ``run_dir/tb``: loaded from ``checkpoint`` if given, else built from
-    ``kwargs``."""
-    if checkpoint is not None:
-        return MaskablePPO.load(checkpoint, env=env, tensorboard_log=str(run_dir / "tb"))
-    return MaskablePPO(env=env, tensorboard_log=str(run_dir / "tb"), seed=seed, verbose=verbose, **kwargs)
+def new_model(env: VecEnv, run: Run, kwargs: dict[str, Any]) -> MaskablePPO:
+    """MaskablePPO built from ``kwargs``, seeded with the run's seed, logging to ``tb/``."""
+    return MaskablePPO(
+        env=env, tensorboard_log=str(run.dir / "tb"), seed=run.seed, verbose=run.options.verbose, **kwargs
+    )
+
+
+def load_model(path: Path, run: Run) -> MaskablePPO:
+    """MaskablePPO from a checkpoint's ``.zip``, with the run's verbosity, logging to ``tb/``; it gets its
+    envs from :func:`continue_model`."""
+    return MaskablePPO.load(path, tensorboard_log=str(run.dir / "tb"), verbose=run.options.verbose)
+
+
+def continue_model(model: MaskablePPO, env: VecEnv, run: Run) -> None:
+    """Give a model loaded from a checkpoint the run's envs, seeding them and torch with the run's seed
+    plus the model's step count: past every seed the run used before (those start at the run's seed,
+    and the step count grows by at least ``n_envs`` from one checkpoint to the next)."""
+    model.set_env(env)
+    model.set_random_seed(run.seed + model.num_timesteps)
 
 
 def algorithm_kwargs(
@@ -137,29 +236,67 @@ def algorithm_kwargs(
     return kwargs
 
 
-def make_run_env(env_id: str, n_envs: int, seed: int, world: IntersectionConfig, run_dir: Path) -> VecEnv:
+def make_run_env(
+    env_id: str | Callable[..., gym.Env],
+    n_envs: int,
+    seed: int,
+    env_kwargs: dict[str, Any],
+    run_dir: Path,
+    append: bool = False,
+) -> VecEnv:
     """The training envs of a run: ``n_envs`` workers (subprocesses when more than one) of ``env_id``
-    on ``world``, with Monitor files in ``run_dir/monitor``."""
-    return make_vec_env(
+    (an id or a function making the env) with ``env_kwargs``, and Monitor files in ``run_dir/monitor``.
+
+    :param append: continue the Monitor files (a resumed run, after
+        :func:`~sb3_gccp.training.checkpoints.rewind_run`): rows are appended, timed from the file's start
+    """
+    env = make_vec_env(
         env_id,
         n_envs=n_envs,
         seed=seed,
-        env_kwargs={"config": world},
-        monitor_dir=str(run_dir / "monitor"),
+        env_kwargs=env_kwargs,
+        monitor_dir=str(run_dir / MONITOR_DIR),
+        monitor_kwargs={"override_existing": not append},
         vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
     )
+    if append:
+        for name, t_start in monitor_start_times(run_dir).items():
+            env.set_attr("t_start", t_start, indices=[int(name.split(".")[0])])
+    return env
 
 
-def write_run_files(run_dir: Path, settings: dict[str, Any], request: StageRequest) -> None:
-    """Make a new run folder with the resolved settings, the arguments and the command line."""
-    run_dir.mkdir(parents=True, exist_ok=False)
-    (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(settings, sort_keys=True))
-    args = {
-        "config_file": str(request.config_file),
-        "seed": request.seed,
-        "n_timesteps": request.n_timesteps,
-        "log_folder": str(request.log_folder),
-        "planner": None if request.planner is None else str(request.planner),
-    }
-    (run_dir / ARGS_FILE).write_text(yaml.safe_dump(args, sort_keys=True))
-    (run_dir / COMMAND_FILE).write_text(shlex.join(request.argv) + "\n")
+def prepare_run_folder(
+    run: Run, request: StageRequest, checkpoint: Checkpoint | None, files: Mapping[str, Writer] | None = None
+) -> None:
+    """Make a new run's folder, or bring a resumed one back to ``checkpoint``, recording its options and
+    command line.
+
+    A new folder gets ``files`` (name -> writer), the arguments and options, the command line, and the
+    resolved settings last: a folder with ``config.yml`` is a complete run folder (``latest_run``).
+    """
+    if not run.resumed:
+        run.dir.mkdir(parents=True, exist_ok=False)
+        for name, write in (files or {}).items():
+            write_atomically(run.dir / name, write)
+        args = {
+            "config_file": str(request.config_file),
+            "seed": request.seed,
+            "n_timesteps": request.n_timesteps,
+            "log_folder": str(request.log_folder),
+            "planner": None if request.planner is None else str(request.planner),
+            **run.options.to_dict(),
+        }
+        _write_text(run.dir / ARGS_FILE, yaml.safe_dump(args, sort_keys=True))
+        _write_text(run.dir / COMMAND_FILE, shlex.join(request.argv) + "\n")
+        _write_text(run.dir / CONFIG_FILE, yaml.safe_dump(run.settings, sort_keys=True))
+        return
+    rewind_run(run.dir, checkpoint)
+    args = yaml.safe_load((run.dir / ARGS_FILE).read_text())
+    if any(args.get(k) != v for k, v in run.options.to_dict().items()):
+        _write_text(run.dir / ARGS_FILE, yaml.safe_dump({**args, **run.options.to_dict()}, sort_keys=True))
+    commands = (run.dir / COMMAND_FILE).read_text() if (run.dir / COMMAND_FILE).is_file() else ""
+    _write_text(run.dir / COMMAND_FILE, commands + shlex.join(request.argv) + "\n")
+
+
+def _write_text(path: Path, text: str) -> None:
+    write_atomically(path, lambda temporary: temporary.write_text(text))
