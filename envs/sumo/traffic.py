@@ -63,7 +63,7 @@ SUMO_OPTIONS = (
 STATE = (tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED)
 """What SUMO reports of every vehicle after each step (the front bumper's position)."""
 KEEP_ROUTE_EXACT = 3
-"""``moveToXY`` mode: the exact position given, mapped onto the vehicle's own route (bits 1 and 2)."""
+"""``moveToXY`` mode: the vehicle keeps its route (bit 0) and stands at the exact position given (bit 1)."""
 
 
 class SumoTraffic(TrafficTable):
@@ -101,6 +101,7 @@ class SumoTraffic(TrafficTable):
         if self._simulation is not None:
             self._simulation.close()
             self._simulation = None
+            self._loaded = False
 
     @property
     def sumo(self) -> SumoSimulation:
@@ -173,9 +174,12 @@ class SumoTraffic(TrafficTable):
 
     def remove(self, slots: NDArray[np.int64]) -> None:
         """Take vehicles off the road, in SUMO too."""
+        slots = np.atleast_1d(slots)
+        if not len(slots):
+            return
         with self._ending_sumo_on_error():
             vehicle = self.sumo.api.vehicle
-            for slot in np.atleast_1d(slots):
+            for slot in slots:
                 name = self._vehicle_id[slot]
                 vehicle.unsubscribe(name)  # libsumo fails the next step on a removed vehicle's subscription
                 vehicle.remove(name)
@@ -206,11 +210,13 @@ class SumoTraffic(TrafficTable):
         """Mark vehicles whose boxes overlap another's (ours); stop the newly crashed ones in SUMO."""
         before = self.crashed.copy()
         ego_hit = super().detect_crashes(ego)
-        with self._ending_sumo_on_error():
-            vehicle = self.sumo.api.vehicle
-            for slot in np.flatnonzero(self.crashed & ~before):
-                vehicle.setSpeedMode(self._vehicle_id[slot], 0)  # stop at once, whatever the deceleration
-                vehicle.setSpeed(self._vehicle_id[slot], 0.0)
+        newly = np.flatnonzero(self.crashed & ~before)
+        if len(newly):
+            with self._ending_sumo_on_error():
+                vehicle = self.sumo.api.vehicle
+                for slot in newly:
+                    vehicle.setSpeedMode(self._vehicle_id[slot], 0)  # stop at once, whatever the deceleration
+                    vehicle.setSpeed(self._vehicle_id[slot], 0.0)
         return ego_hit
 
     def _place_ego(self, api: Any, ego: Obstacle) -> None:
