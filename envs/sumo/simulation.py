@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import subprocess
+import time
 import weakref
 from collections.abc import Sequence
 from importlib.util import find_spec
@@ -59,11 +60,6 @@ class SumoSimulation:
         """Whether SUMO runs inside this process (libsumo)."""
         self._finalizer = weakref.finalize(self, _shutdown, self.api, self.process, self.in_process)
 
-    @property
-    def closed(self) -> bool:
-        """Whether the simulation has ended."""
-        return not self._finalizer.alive
-
     def load(self, args: Sequence[str]) -> None:
         """Restart the simulation with new options (a new seed), keeping the process."""
         self.api.load(list(args))
@@ -76,7 +72,8 @@ class SumoSimulation:
 def _start_traci(binary: str, args: Sequence[str], attempts: int = 3) -> tuple[Any, subprocess.Popen[bytes]]:
     """A ``sumo`` process listening on a free port, and the TraCI connection to it.
 
-    A port found free can be taken by another process before SUMO binds it: then try another.
+    A port found free can be taken by another process before SUMO binds it (SUMO then exits): then try
+    another.
     """
     import traci
     from sumolib.miscutils import getFreeSocketPort
@@ -90,24 +87,38 @@ def _start_traci(binary: str, args: Sequence[str], attempts: int = 3) -> tuple[A
             stderr=subprocess.DEVNULL,
         )
         try:
-            return traci.connect(port, numRetries=100, proc=process, waitBetweenRetries=0.05), process
+            return _connect(port, process), process
         except (traci.TraCIException, traci.FatalTraCIError) as err:
             _end_process(process, timeout=0.0)
             error = err
     raise RuntimeError(f"could not connect to SUMO over TraCI: {error}")
 
 
+def _connect(port: int, process: subprocess.Popen[bytes], timeout: float = 30.0) -> Any:
+    """Connect to a starting SUMO, retrying quietly (TraCI's own retries print to stdout)."""
+    import traci
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return traci.connect(port, numRetries=0, proc=process)
+        except traci.FatalTraCIError:  # not listening yet (TraCIException: the process has ended)
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
 def _shutdown(api: Any, process: subprocess.Popen[bytes] | None, in_process: bool) -> None:
     """End a simulation whatever state it is in: close it, then make sure its process is gone."""
-    try:
-        # A simulation that failed may not close cleanly: it ends all the same.
-        with contextlib.suppress(Exception):
-            api.close() if in_process else api.close(wait=False)
-    finally:
-        if process is not None:
-            _end_process(process)
+    with contextlib.suppress(Exception):  # a simulation that failed may not close cleanly: it ends anyway
         if in_process:
-            _release_libsumo()
+            api.close()
+        else:
+            api.close(wait=False)
+    if process is not None:
+        _end_process(process)
+    if in_process:
+        _release_libsumo()
 
 
 def _end_process(process: subprocess.Popen[bytes], timeout: float = 5.0) -> None:
