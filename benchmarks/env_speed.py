@@ -4,7 +4,8 @@ Ours is timed as MaskablePPO calls it: ``action_masks()`` and then ``step``, an 
 (the stock env has no mask). ``--no-masks`` times ``step`` alone, as before.
 
 Run: python benchmarks/env_speed.py [--steps 3000] [--spawn-probability 0.06]
-Last line: ``ratio <ours/stock>`` (goal: at most 0.5).
+Last line: ``ratio <ours/stock>`` (goal: at most 0.5). Ours is also timed on SUMO traffic (``traffic: sumo``,
+the ``sumo`` extra), in the line ``sumo_ratio <sumo/builtin>`` (goal: at most 1.5).
 """
 
 from __future__ import annotations
@@ -37,6 +38,27 @@ def median_step_ms(env: gym.Env, steps: int, seed: int, masks: bool = False) -> 
     return float(np.median(times) * 1e3)
 
 
+def print_sumo_speed(args: argparse.Namespace, blocks: int = 10) -> None:
+    """Time GCCPPlanner-v0 on our traffic and on SUMO's (``traffic: sumo``) as ours is timed above, in
+    alternating blocks of steps so that a change of load on a shared machine hits both alike; print the
+    medians over the blocks and their ratio."""
+    envs = {
+        name: gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability, traffic=name)
+        for name in ("builtin", "sumo")
+    }
+    times: dict[str, list[float]] = {name: [] for name in envs}
+    for block in range(blocks):
+        for name, env in envs.items():
+            times[name].append(
+                median_step_ms(env, args.steps // blocks, args.seed + block, masks=not args.no_masks)
+            )
+    for env in envs.values():
+        env.close()
+    builtin, sumo = (float(np.median(times[name])) for name in envs)
+    print(f"GCCPPlanner-v0 builtin / sumo traffic, interleaved: median {builtin:.2f} / {sumo:.2f} ms/step")
+    print(f"sumo_ratio {sumo / builtin:.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=3000)
@@ -60,6 +82,7 @@ def main() -> None:
     with_masks = "" if args.no_masks else " (action_masks() + step)"
     print(f"GCCPPlanner-v0  median {ours:.2f} ms/step{with_masks}")
     print(f"intersection-v2 median {stock:.2f} ms/step")
+    print_sumo_speed(args)
     print(f"ratio {ours / stock:.3f}")
 
 

@@ -1,6 +1,8 @@
 """Share of other vehicles that crash with no ego: ours vs highway-env's intersection-v0 and -v2.
 
-20 seeds x 60 s of simulated time at 10 Hz, the same spawn probability per step for all three.
+20 seeds x 60 s of simulated time at 10 Hz, the same spawn probability per step for all. Our world is run
+with both traffic backends: ours and SUMO's (``traffic: sumo``, the ``sumo`` extra), crashes detected by
+our box checker in both.
 Run: python benchmarks/traffic_quality.py [--seeds 20] [--seconds 60] [--spawn-probability 0.06]
 Last line: ``npc_crash_share <ours>`` (goal: at most 0.01).
 """
@@ -16,17 +18,21 @@ from tqdm import trange
 
 from gccp_envs.config import DT, IntersectionConfig
 from gccp_envs.scenario import layout_for
-from gccp_envs.traffic import Traffic
+from gccp_envs.world import make_traffic
 
 
-def ours(seeds: int, steps: int, spawn_probability: float) -> tuple[int, int, float]:
-    """(vehicles, crashed vehicles, completed crossings per minute) of our traffic."""
-    config = IntersectionConfig(spawn_probability=spawn_probability)
+def ours(
+    seeds: int, steps: int, spawn_probability: float, backend: str = "builtin"
+) -> tuple[int, int, float]:
+    """(vehicles, crashed vehicles, completed crossings per minute) of our world's traffic (config
+    ``traffic``: ``backend``)."""
+    config = IntersectionConfig(spawn_probability=spawn_probability, traffic=backend)
     layout = layout_for(config)
     total = crashed = left = 0
-    for seed in trange(seeds, desc="ours", leave=False):
+    traffic = make_traffic(layout, config, np.random.default_rng())
+    for seed in trange(seeds, desc=f"ours, {backend}", leave=False):
         rng = np.random.default_rng(seed)
-        traffic = Traffic(layout, config, rng)
+        traffic.reset(rng)
         for _ in range(steps):
             if rng.uniform() < spawn_probability:
                 traffic.spawn_random()
@@ -35,6 +41,7 @@ def ours(seeds: int, steps: int, spawn_probability: float) -> tuple[int, int, fl
         total += traffic.spawned
         crashed += len(traffic.crashed_uids)
         left += traffic.spawned - int(traffic.active.sum())
+    traffic.close()
     return total, crashed, left / seeds / (steps * DT / 60.0)
 
 
@@ -79,6 +86,7 @@ def main() -> None:
         "intersection-v0": stock("intersection-v0", args.seeds, steps, args.spawn_probability),
         "intersection-v2": stock("intersection-v2", args.seeds, steps, args.spawn_probability),
         "ours": ours(args.seeds, steps, args.spawn_probability),
+        "ours, sumo": ours(args.seeds, steps, args.spawn_probability, "sumo"),
     }
     for name, (total, crashed, rate) in results.items():
         print(f"{name:<16}{total:>9}{crashed:>9}{crashed / max(total, 1):>8.3f}{rate:>13.1f}")

@@ -100,5 +100,6 @@ class IntersectionBaseEnv(gym.Env):
         return self._renderer.frame(self.world, **self._render_extras())
 
     def close(self) -> None:
-        """Release the renderer."""
+        """Release the renderer and the traffic (SUMO's simulation ends)."""
         self._renderer = None
+        self.world.close()

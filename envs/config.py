@@ -13,11 +13,16 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
+from gccp_envs.sumo import require_sumo_extra
+
 TASKS = ("left", "straight", "right")
 """The paper's three scenarios: turning left, going straight, turning right."""
 
 DT = 0.1
 """Seconds per policy step and per simulation step: the paper's actions are reached in 0.1 s."""
+
+TRAFFIC_BACKENDS = ("builtin", "sumo")
+"""Who drives the other vehicles (config ``traffic``)."""
 
 
 def parse_tasks(text: str) -> list[str]:
@@ -113,6 +118,10 @@ class IntersectionConfig:
     """Distance [m] past the junction box on the task's exit arm that counts as task success."""
 
     # --- traffic ---------------------------------------------------------------------------------
+    traffic: str = "builtin"
+    """Who drives the other vehicles: 'builtin', our IDM drivers and commit protocol (envs/traffic.py), or
+    'sumo', SUMO's own drivers, junction model and gap acceptance on the same junction (envs/sumo/, the
+    ``sumo`` extra; the paper's SMARTS runs SUMO). The keys below set both, except ``npc_patience``."""
     spawn_probability: float = 0.06
     """Chance per 0.1 s step of one spawn attempt on a random inbound lane (highway-env semantics;
     0.06 at 10 Hz matches the density of intersection-v0 at its default 1 Hz)."""
@@ -121,12 +130,13 @@ class IntersectionConfig:
     npc_speed_range: tuple[float, float] = (7.0, 10.0)
     """Desired speeds [m/s] of other vehicles, drawn uniformly per vehicle."""
     npc_time_headway: tuple[float, float] = (1.0, 1.6)
-    """IDM time headways [s] of other vehicles, drawn uniformly per vehicle."""
+    """Time headways [s] of other vehicles (IDM's T; SUMO's tau), drawn uniformly per vehicle."""
     npc_patience: float | None = 8.0
     """Seconds another vehicle stands at its stop line before it goes before all vehicles that have not:
     priority traffic not yet committed stops for it (it can still stop comfortably), committed traffic
     and a standing ego still hold it back. SUMO's impatience, without which a minor-road car can wait for
-    a gap past the time limit with the ego queued behind it (ours; null: never impatient)."""
+    a gap past the time limit with the ego queued behind it (ours; null: never impatient). Builtin traffic
+    only: SUMO's drivers have SUMO's own impatience."""
     crashed_vehicle_lifetime: float = 3.0
     """Seconds a crashed other vehicle stays on the road before it is removed."""
     max_vehicles: int = 48
@@ -278,6 +288,10 @@ def _validate(config: IntersectionConfig) -> None:
             raise ValueError(f"{field.name} must be finite, got {value!r}")
     if config.task not in (*TASKS, "mixed"):
         raise ValueError(f"unknown task {config.task!r}: expected one of {', '.join((*TASKS, 'mixed'))}")
+    if config.traffic not in TRAFFIC_BACKENDS:
+        raise ValueError(f"unknown traffic {config.traffic!r}: expected one of {', '.join(TRAFFIC_BACKENDS)}")
+    if config.traffic == "sumo":
+        require_sumo_extra()
     if config.ego_lane not in ("random", "task"):
         raise ValueError(f"ego_lane must be 'random' or 'task', got {config.ego_lane!r}")
     positive_ints = (

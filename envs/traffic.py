@@ -1,4 +1,6 @@
-"""Other vehicles: route-following IDM drivers that yield by priority at the junction.
+"""Other vehicles: the table the world reads (:class:`TrafficTable`) and our drivers that fill it
+(:class:`Traffic`, config ``traffic: builtin``), route-following IDM drivers that yield by priority at the
+junction. SUMO's drivers fill the same table with ``traffic: sumo`` (:mod:`gccp_envs.sumo`).
 
 Every vehicle drives one lane path (no lane changes). Longitudinal control is the Intelligent Driver
 Model towards the nearest obstacle ahead on its path: any vehicle, the ego included, whose box reaches
@@ -21,6 +23,7 @@ All state lives in fixed-capacity numpy arrays, so a step costs a few dozen vect
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,10 +76,111 @@ class Obstacle:
     speed: float
     length: float = VEHICLE_LENGTH
     width: float = VEHICLE_WIDTH
+    path: int | None = None
+    """Lane path of its task, for a traffic that routes it in its own simulation (SUMO's)."""
 
 
-class Traffic:
-    """The other vehicles of one episode, in fixed-capacity arrays (inactive slots are ignored)."""
+class TrafficTable(ABC):
+    """The other vehicles of one episode as the world reads them, in fixed-capacity arrays (inactive
+    slots are ignored). A backend drives them: :class:`Traffic` (ours) or
+    :class:`gccp_envs.sumo.traffic.SumoTraffic` (SUMO's); crashes are detected here, for both.
+
+    :param layout: the junction
+    :param config: the world config
+    :param rng: the source of the first episode's randomness
+    """
+
+    def __init__(
+        self, layout: IntersectionLayout, config: IntersectionConfig, rng: np.random.Generator
+    ) -> None:
+        self.layout = layout
+        self.config = config
+        self.reset(rng)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """Empty the road for a new episode whose randomness is ``rng``."""
+        self.rng = rng
+        m = self.config.max_vehicles
+        self.active = np.zeros(m, bool)
+        self.path = np.zeros(m, np.int64)
+        """Lane path each vehicle drives along."""
+        self.s = np.zeros(m)
+        """Arc length [m] of each vehicle's centre along its path."""
+        self.speed = np.zeros(m)
+        self.crashed = np.zeros(m, bool)
+        self.crash_timer = np.zeros(m)
+        self.uid = np.full(m, -1, np.int64)
+        """Unique id of each vehicle in the episode (slots are reused)."""
+        self.length = np.full(m, VEHICLE_LENGTH)
+        self.width = np.full(m, VEHICLE_WIDTH)
+        self.pose = np.zeros((m, 3))
+        """World pose (x, y, heading) of each vehicle's centre."""
+        self.spawned = 0
+        """Vehicles spawned this episode."""
+        self.crashed_uids: set[int] = set()
+        """Unique ids of the vehicles that crashed into another vehicle or the ego this episode."""
+
+    @property
+    def indices(self) -> NDArray[np.int64]:
+        """Slots of the active vehicles."""
+        return np.flatnonzero(self.active)
+
+    @abstractmethod
+    def spawn_random(self, ego: Obstacle | None = None) -> int | None:
+        """Spawn one vehicle at the start of a random inbound lane on a random allowed movement."""
+
+    @abstractmethod
+    def step(self, ego: Obstacle | None = None) -> None:
+        """Advance all vehicles by one 0.1 s step, then remove those that left or crashed long ago."""
+
+    def remove(self, slots: NDArray[np.int64]) -> None:
+        """Take vehicles off the road."""
+        self.active[slots] = False
+
+    def close(self) -> None:  # noqa: B027  (a hook: only a backend running a simulation has one to end)
+        """Release what the traffic holds outside this object (nothing here)."""
+
+    def detect_crashes(self, ego: Obstacle | None = None) -> bool:
+        """Mark vehicles whose boxes overlap another's; return whether the ego was hit."""
+        idx = self.indices
+        if not len(idx):
+            return False
+        xy = self.pose[idx, :2]
+        near = (
+            np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]) < VEHICLE_LENGTH + 0.5
+        )
+        i, j = np.nonzero(np.triu(near, 1))
+        hit = np.zeros(len(idx), bool)
+        if len(i):
+            overlap = boxes_overlap(self._corners(idx[i]), self._corners(idx[j]))
+            hit[i[overlap]] = hit[j[overlap]] = True
+        ego_hit = False
+        if ego is not None:
+            close = np.flatnonzero(np.hypot(xy[:, 0] - ego.x, xy[:, 1] - ego.y) < VEHICLE_LENGTH + ego.length)
+            if len(close):
+                ego_box = box_corners(
+                    np.array(ego.x),
+                    np.array(ego.y),
+                    np.array(ego.heading),
+                    np.array(ego.length),
+                    np.array(ego.width),
+                )
+                by_ego = boxes_overlap(self._corners(idx[close]), ego_box[None])
+                hit[close[by_ego]] = True
+                ego_hit = bool(by_ego.any())
+        newly = idx[hit & ~self.crashed[idx]]
+        self.crashed[newly] = True
+        self.speed[newly] = 0.0
+        self.crashed_uids.update(int(u) for u in self.uid[newly])
+        return ego_hit
+
+    def _corners(self, slots: NDArray[np.int64]) -> FloatArray:
+        pose = self.pose[slots]
+        return box_corners(pose[:, 0], pose[:, 1], pose[:, 2], self.length[slots], self.width[slots])
+
+
+class Traffic(TrafficTable):
+    """Our drivers: IDM along their lane paths and the commit protocol at the junction (module doc)."""
 
     def __init__(
         self,
@@ -85,39 +189,22 @@ class Traffic:
         rng: np.random.Generator,
         driver: DriverModel | None = None,
     ) -> None:
-        self.layout = layout
-        self.config = config
-        self.rng = rng
         self.driver = driver or DriverModel()
-        m = config.max_vehicles
-        self.active = np.zeros(m, bool)
-        self.path = np.zeros(m, np.int64)
-        self.s = np.zeros(m)
-        self.speed = np.zeros(m)
+        super().__init__(layout, config, rng)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """Empty the road for a new episode whose randomness is ``rng``."""
+        super().reset(rng)
+        m = self.config.max_vehicles
         self.desired_speed = np.ones(m)
         self.headway = np.ones(m)
         self.committed = np.zeros(m, bool)
         self.waited = np.zeros(m)
         """Seconds each vehicle has stood at its stop line, not committed."""
-        self.crashed = np.zeros(m, bool)
-        self.crash_timer = np.zeros(m)
-        self.uid = np.full(m, -1, np.int64)
         self.order = np.zeros(m, np.int64)
-        self.length = np.full(m, VEHICLE_LENGTH)
-        self.width = np.full(m, VEHICLE_WIDTH)
-        self.pose = np.zeros((m, 3))
         self._next_uid = 0
-        self.spawned = 0
-        """Vehicles spawned this episode."""
-        self.crashed_uids: set[int] = set()
-        """Unique ids of the vehicles that crashed into another vehicle or the ego this episode."""
 
     # --- bookkeeping -------------------------------------------------------------------------------
-    @property
-    def indices(self) -> NDArray[np.int64]:
-        """Slots of the active vehicles."""
-        return np.flatnonzero(self.active)
-
     def _refresh_poses(self) -> None:
         idx = self.indices
         if len(idx):
@@ -183,10 +270,6 @@ class Traffic:
         path = int(self.rng.choice(choices))
         return self.spawn(path, float(self.rng.uniform(0.0, 2.0)), ego)
 
-    def remove(self, slots: NDArray[np.int64]) -> None:
-        """Take vehicles off the road."""
-        self.active[slots] = False
-
     # --- one step ----------------------------------------------------------------------------------
     def step(self, ego: Obstacle | None = None) -> None:
         """Advance all vehicles by one 0.1 s step, then remove those that left or crashed long ago."""
@@ -215,44 +298,6 @@ class Traffic:
             | (self.crash_timer > self.config.crashed_vehicle_lifetime)
         )
         self.remove(np.flatnonzero(done))
-
-    def detect_crashes(self, ego: Obstacle | None = None) -> bool:
-        """Mark vehicles whose boxes overlap another's; return whether the ego was hit."""
-        idx = self.indices
-        if not len(idx):
-            return False
-        xy = self.pose[idx, :2]
-        near = (
-            np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1]) < VEHICLE_LENGTH + 0.5
-        )
-        i, j = np.nonzero(np.triu(near, 1))
-        hit = np.zeros(len(idx), bool)
-        if len(i):
-            overlap = boxes_overlap(self._corners(idx[i]), self._corners(idx[j]))
-            hit[i[overlap]] = hit[j[overlap]] = True
-        ego_hit = False
-        if ego is not None:
-            close = np.flatnonzero(np.hypot(xy[:, 0] - ego.x, xy[:, 1] - ego.y) < VEHICLE_LENGTH + ego.length)
-            if len(close):
-                ego_box = box_corners(
-                    np.array(ego.x),
-                    np.array(ego.y),
-                    np.array(ego.heading),
-                    np.array(ego.length),
-                    np.array(ego.width),
-                )
-                by_ego = boxes_overlap(self._corners(idx[close]), ego_box[None])
-                hit[close[by_ego]] = True
-                ego_hit = bool(by_ego.any())
-        newly = idx[hit & ~self.crashed[idx]]
-        self.crashed[newly] = True
-        self.speed[newly] = 0.0
-        self.crashed_uids.update(int(u) for u in self.uid[newly])
-        return ego_hit
-
-    def _corners(self, slots: NDArray[np.int64]) -> FloatArray:
-        pose = self.pose[slots]
-        return box_corners(pose[:, 0], pose[:, 1], pose[:, 2], self.length[slots], self.width[slots])
 
     # --- driver model --------------------------------------------------------------------------------
     def _obstacle_table(self, ego: Obstacle | None) -> tuple[FloatArray, ...]:

@@ -10,12 +10,23 @@ from numpy.typing import NDArray
 from gccp_envs.action import EgoMotion, EgoState
 from gccp_envs.config import DT, TASKS, IntersectionConfig
 from gccp_envs.geometry import FloatArray, box_corners, poses_to_frame
-from gccp_envs.scenario import TURN_OFFSET, layout_for
+from gccp_envs.scenario import TURN_OFFSET, IntersectionLayout, layout_for
 from gccp_envs.subgoals import SubgoalSampler
-from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, Traffic
+from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, Traffic, TrafficTable
 
 EGO_ARM = 0
 """The ego always enters from the south arm."""
+
+
+def make_traffic(
+    layout: IntersectionLayout, config: IntersectionConfig, rng: np.random.Generator
+) -> TrafficTable:
+    """The traffic of config ``traffic``: ours, or SUMO's (imported only when chosen)."""
+    if config.traffic == "sumo":
+        from gccp_envs.sumo.traffic import SumoTraffic
+
+        return SumoTraffic(layout, config, rng)
+    return Traffic(layout, config, rng)
 
 
 @dataclass(frozen=True)
@@ -57,7 +68,7 @@ class IntersectionWorld:
         # Long enough for the state's T_h + 1 poses and for a decision's future, read T_m steps later.
         self._hist_len = max(config.history_length + 1, config.decision_period) + 1
         self.rng = np.random.default_rng()
-        self.traffic = Traffic(self.layout, config, self.rng)
+        self.traffic = make_traffic(self.layout, config, self.rng)
         self.task = "straight"
         self.ego = EgoState(0.0, 0.0, 0.0, 0.0)
         self.steps = 0
@@ -83,7 +94,7 @@ class IntersectionWorld:
         self.task = task
         self.task_goal = self.layout.task_goal(task)
         self._task_paths = self.layout.paths_from(EGO_ARM, turn=task)
-        self.traffic = Traffic(self.layout, cfg, rng)
+        self.traffic.reset(rng)
         self._hist = np.zeros((self._hist_len, self.ego_slot + 1, 4))
         self._hist_uid = np.full((self._hist_len, self.ego_slot + 1), -1, np.int64)
         warmup = round(cfg.warmup_time / DT)
@@ -158,6 +169,10 @@ class IntersectionWorld:
             wrong_exit=exit_arm is not None and not success,
         )
 
+    def close(self) -> None:
+        """Release the traffic (SUMO's simulation ends)."""
+        self.traffic.close()
+
     @property
     def time(self) -> float:
         """Seconds since the ego appeared."""
@@ -166,7 +181,7 @@ class IntersectionWorld:
     # --- ego queries ---------------------------------------------------------------------------------
     def ego_obstacle(self) -> Obstacle:
         """The ego as the traffic sees it."""
-        return Obstacle(self.ego.x, self.ego.y, self.ego.heading, self.ego.speed)
+        return Obstacle(self.ego.x, self.ego.y, self.ego.heading, self.ego.speed, path=self._task_paths[0])
 
     def ego_on_road(self, ego: EgoState) -> bool:
         """Whether all four corners of the ego's box are on the drivable area."""
