@@ -25,7 +25,7 @@ import yaml
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import ARGS_FILE, COMMAND_FILE, CONFIG_FILE
@@ -138,15 +138,20 @@ def algorithm_kwargs(
 
 
 def make_run_env(env_id: str, n_envs: int, seed: int, world: IntersectionConfig, run_dir: Path) -> VecEnv:
-    """The training envs of a run: ``n_envs`` workers (subprocesses when more than one) of ``env_id``
-    on ``world``, with Monitor files in ``run_dir/monitor``."""
+    """The training envs of a run: ``n_envs`` copies of ``env_id`` on ``world``, stepped in the learner's
+    process, with Monitor files in ``run_dir/monitor``.
+
+    Not in subprocesses: a step with its action mask takes about 2 ms, and subprocesses would add two
+    pipe round trips to each (``step``, then ``action_masks()``); on a shared 2-core machine the planner
+    stage trained 1.1-1.6 times as fast without them (docs/experiments/2026-11-26-planner-stage-speed.md).
+    """
     return make_vec_env(
         env_id,
         n_envs=n_envs,
         seed=seed,
         env_kwargs={"config": world},
         monitor_dir=str(run_dir / "monitor"),
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+        vec_env_cls=DummyVecEnv,
     )
 
 
