@@ -135,6 +135,7 @@ def train_decider(request: StageRequest) -> Path:
         },
         run.dir,
         append=model is not None,
+        subprocesses=True,
     )
     if model is None:
         kwargs = algorithm_kwargs(

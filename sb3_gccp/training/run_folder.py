@@ -243,12 +243,20 @@ def make_run_env(
     env_kwargs: dict[str, Any],
     run_dir: Path,
     append: bool = False,
+    subprocesses: bool = False,
 ) -> VecEnv:
-    """The training envs of a run: ``n_envs`` workers (subprocesses when more than one) of ``env_id``
-    (an id or a function making the env) with ``env_kwargs``, and Monitor files in ``run_dir/monitor``.
+    """The training envs of a run: ``n_envs`` copies of ``env_id`` (an id or a function making the env)
+    with ``env_kwargs``, and Monitor files in ``run_dir/monitor``.
+
+    By default stepped in the learner's process: a planner-env step with its action mask takes about
+    2 ms, and subprocesses would add two pipe round trips to each (``step``, then ``action_masks()``); on
+    a shared 2-core machine the planner stage trained 1.1-1.6 times as fast without them
+    (docs/experiments/2026-11-26-planner-stage-speed.md). The decider stage, whose step runs the frozen
+    planner for T_m steps, asks for ``subprocesses``.
 
     :param append: continue the Monitor files (a resumed run, after
         :func:`~sb3_gccp.training.checkpoints.rewind_run`): rows are appended, timed from the file's start
+    :param subprocesses: one worker process per env (when there is more than one)
     """
     env = make_vec_env(
         env_id,
@@ -257,7 +265,7 @@ def make_run_env(
         env_kwargs=env_kwargs,
         monitor_dir=str(run_dir / MONITOR_DIR),
         monitor_kwargs={"override_existing": not append},
-        vec_env_cls=SubprocVecEnv if n_envs > 1 else DummyVecEnv,
+        vec_env_cls=SubprocVecEnv if subprocesses and n_envs > 1 else DummyVecEnv,
     )
     if append:
         for name, t_start in monitor_start_times(run_dir).items():
