@@ -42,7 +42,7 @@ def timed_decisions(hierarchy: Hierarchy, count: int, seed: int) -> tuple[list[O
     :return: the observations the decisions were made from, and (count,) ``env.step`` times [ms]
     """
     env = hierarchy.make_env()
-    decider = hierarchy.decider_policy()
+    decider = hierarchy.decider_policy(env.config)
     observations: list[Obs] = []
     times = np.empty(count)
     obs, _ = env.reset(seed=seed)
