@@ -113,6 +113,7 @@ def test_quick_preset_trains_evaluates_and_writes_tables_data_and_figures(reprod
         assert (run / "planner.zip").read_bytes() == (root / "seed0" / "planner" / "planner.zip").read_bytes()
 
 
+@pytest.mark.slow  # 13 s; the quick preset test covers a whole run in the fast tier
 def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(reproduced):
     folder, first = reproduced
     assert first.returncode == 0, first.stderr
@@ -264,6 +265,7 @@ def test_tables_give_mean_and_sample_std_over_seeds():
     assert spread["mean"] == pytest.approx(60.0) and spread["std"] == pytest.approx(14.142, abs=1e-3)
 
 
+@pytest.mark.slow  # 19 s; the quick preset test runs every variant over a trained planner in the fast tier
 def test_hierarchy_variants_over_the_scripted_planner(tmp_path):
     result = reproduce(tmp_path, "--planner", "scripted", "--methods", "ours", "without_gccp")
     assert result.returncode == 0, result.stderr
