@@ -168,7 +168,7 @@ class IntersectionConfig:
     """Steps the action mask looks ahead: an action is allowed if the ego stays on the road after it
     and some action held for the remaining steps keeps it there (1: the next step only). 10 (1 s): at 5
     a planner could still enter a right-hand corner too fast to stay on the road
-    (docs/experiments/2026-11-26-road-keeping-look-ahead.md)."""
+    (docs/experiments/2026-11-26-collisions-over-the-learned-planner.md)."""
 
     # --- state (paper III-B-1) -------------------------------------------------------------------
     num_neighbours: int = 5
