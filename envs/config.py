@@ -223,6 +223,10 @@ class IntersectionConfig:
     """Collision penalty (paper: -1)."""
     r_off: float = -1.0
     """Off-road penalty (paper: -1)."""
+    wrong_exit_penalty: bool = True
+    """Pay ``r_off`` also when the ego leaves the junction by another exit than its task's, which ends the
+    episode as leaving the road does (ours; paper: False, and a flat baseline that leaves by the nearest
+    exit loses nothing against one that drives off the road)."""
     eps_d: float = 0.05
     """epsilon_d: weight of the decrease of the distance to the subgoal (paper: 0.05)."""
     eps_h: float = 0.5

@@ -129,7 +129,9 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             arrived = not reached and goal_reached(cfg, after)
             reached |= arrived
             planner_return += sum(
-                planner_reward(cfg, before, after, arrived, outcome.crashed, outcome.offroad).values()
+                planner_reward(
+                    cfg, before, after, arrived, outcome.crashed, outcome.offroad, outcome.wrong_exit
+                ).values()
             )
             truncated = not outcome.terminal and self._truncated()
             if outcome.terminal or truncated:

@@ -103,7 +103,9 @@ class GCCPPlannerEnv(IntersectionBaseEnv):
         outcome = self.world.step(int(action))
         after = goal_errors(self.world.ego, self._subgoal)
         arrived = self._goal_arrived(outcome, after)
-        terms = planner_reward(self.config, before, after, arrived, outcome.crashed, outcome.offroad)
+        terms = planner_reward(
+            self.config, before, after, arrived, outcome.crashed, outcome.offroad, outcome.wrong_exit
+        )
         if self._holding:
             terms["r_time"] = self.config.r_time_hold
         terminated = outcome.terminal

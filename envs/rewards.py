@@ -27,6 +27,7 @@ def planner_reward(
     arrived: bool,
     crashed: bool,
     offroad: bool,
+    wrong_exit: bool = False,
 ) -> dict[str, float]:
     """Terms of r^m = r_time + r_arr + r_col + r_off + r_dist + r_head for one step.
 
@@ -35,13 +36,15 @@ def planner_reward(
     :param arrived: whether the goal was reached in this step (paid once per goal)
     :param crashed: whether the ego collided
     :param offroad: whether the ego left the road
+    :param wrong_exit: whether the ego left by another exit than its task's (paid as leaving the road
+        when ``wrong_exit_penalty``)
     :return: the terms by name; their sum is the reward
     """
     return {
         "r_time": config.r_time,
         "r_arr": config.r_arr if arrived else 0.0,
         "r_col": config.r_col if crashed else 0.0,
-        "r_off": config.r_off if offroad else 0.0,
+        "r_off": config.r_off if offroad or (wrong_exit and config.wrong_exit_penalty) else 0.0,
         "r_dist": config.eps_d * (before[0] - after[0]),
         "r_head": config.eps_h * (before[1] - after[1]),
     }

@@ -50,7 +50,7 @@ from sb3_gccp.constants import (
 )
 from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.safe_loading import first_line
-from sb3_gccp.training.baselines import load_baseline, read_baseline_spec
+from sb3_gccp.training.baselines import MASKS_KEY, load_baseline, read_baseline_spec
 
 RECORDS = (
     COMMAND_FILE,
@@ -144,9 +144,10 @@ def _write(target: Path, name: str, source: Path | str) -> None:
 def _baseline_files(run_dir: Path, trusted: bool) -> dict[str, Path | str]:
     """Target name -> source file (or text) of a baseline's export, with the rewritten baseline.yml; the
     model loaded first as ``evaluate`` would."""
-    name, model = read_baseline_spec(run_dir)
+    name, masked, model = read_baseline_spec(run_dir)
     load_baseline(run_dir, trusted=trusted)
-    return {MODEL_FILE: model, BASELINE_FILE: yaml.safe_dump({"algorithm": name, "model": MODEL_FILE})}
+    spec = {"algorithm": name, MASKS_KEY: masked, "model": MODEL_FILE}
+    return {MODEL_FILE: model, BASELINE_FILE: yaml.safe_dump(spec, sort_keys=False)}
 
 
 def _hierarchy_files(

@@ -73,6 +73,11 @@ def preprocess_hyperparams(
         raise HyperparamsError(
             "imitation: cloning the scripted planner runs in `sb3_gccp train --stage planner` only"
         )
+    if hyperparams.pop("action_masks", False) and manager.algo != "ppo_mask":
+        raise HyperparamsError(
+            f"action_masks: a masked {manager.algo} trains with `sb3_gccp reproduce` only; "
+            "here use --algo ppo_mask or set action_masks: false"
+        )
     schedules = [key for key in ("learning_rate", "clip_range") if isinstance(hyperparams.get(key), dict)]
     if schedules:
         per_timestep = gradient_steps_per_timestep(ALGOS[manager.algo], hyperparams)

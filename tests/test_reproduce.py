@@ -75,8 +75,8 @@ def test_quick_preset_trains_evaluates_and_writes_tables_data_and_figures(reprod
     folder, result = reproduced
     assert result.returncode == 0, result.stderr
     out, root = folder / "results", folder / "runs" / "reproduce" / "quick"
-    assert "[1/8] seed 0 planner: training for 32 steps" in result.stdout
-    assert "[8/8] seed 0 sac_discrete: training for 2 episodes" in result.stdout
+    assert "[1/11] seed 0 planner: training for 32 steps" in result.stdout
+    assert "[11/11] seed 0 sac_discrete_paper: training for 2 episodes" in result.stdout
 
     for stem, names in (("table1", TABLE_1), ("table2", TABLE_2)):
         table = (out / f"{stem}.md").read_text()

@@ -17,6 +17,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from torch import nn
 
+from sb3_gccp.action_masks import ActionMaskObservation
 from sb3_gccp.hyperparams import (
     check_keys,
     default_config_file,
@@ -40,12 +41,14 @@ def tiny_cartpole(**kwargs: Any) -> SACDiscrete:
 def from_shipped_config(env_id: str, **overrides: Any) -> tuple[SACDiscrete, int]:
     """The model of an entry of ``zoo_configs/sac_discrete.yml`` and its budget."""
     settings = load_hyperparams(default_config_file("sac_discrete.yml"), env_id)
+    masked = settings.pop("action_masks", False)
     check_keys(settings, SACDiscrete)
     settings.update(overrides)
     n_timesteps = int(settings.pop("n_timesteps"))
     policy = settings.pop("policy")
     settings.pop("n_envs", None)
     env = gym.make(env_id, **settings.pop("env_kwargs", {}))
+    env = ActionMaskObservation(env) if masked else env
     policy_kwargs = resolve_policy_kwargs(settings.pop("policy_kwargs", {}))
     return SACDiscrete(policy, env, policy_kwargs=policy_kwargs, **settings), n_timesteps
 

@@ -24,7 +24,8 @@ CURVE_COLORS = {
     "ppo": "tab:orange",
     "sac_discrete": "tab:green",
 }
-"""One colour per method in Figs. 5 and 6 (ours the same in both)."""
+"""One colour per method in Figs. 5 and 6 (ours the same in both); a baseline's paper-style row has its
+algorithm's colour, dashed."""
 CURVE_WINDOW = 100
 """Episodes of the rolling success rate in Figs. 5 and 6 (fewer at the start)."""
 
@@ -55,9 +56,15 @@ def plot_success_curves(
         length = min(len(r) for r in rates)
         stack = np.stack([r[:length] for r in rates])
         episodes = np.arange(1, length + 1)
-        color = CURVE_COLORS[name]
+        method = METHODS[name]
+        color = CURVE_COLORS[name if method.is_hierarchy else method.algorithm]
         ax.plot(
-            episodes, stack.mean(0), color=color, label=METHODS[name].label, lw=2 if name == "ours" else 1.2
+            episodes,
+            stack.mean(0),
+            color=color,
+            label=method.label,
+            lw=2 if name == "ours" else 1.2,
+            ls="--" if method.paper_style else "-",
         )
         if len(rates) > 1:
             ax.fill_between(episodes, stack.min(0), stack.max(0), color=color, alpha=0.2)

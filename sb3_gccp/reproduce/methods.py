@@ -15,11 +15,21 @@ class Method:
     """Name in the tables and figures (the paper's)."""
     predictor: str | None = None
     """``gccp.predictor`` of a hierarchy variant; None for a baseline on the flat env."""
+    baseline: str | None = None
+    """A baseline's algorithm and zoo file (``dqn``, ``ppo``, ``sac_discrete``); None: ``name``."""
+    paper_style: bool = False
+    """A baseline as the paper ran it: no action masks and no wrong-exit penalty (the zoo entry's
+    ``action_masks`` and the world's ``wrong_exit_penalty`` set to false)."""
 
     @property
     def is_hierarchy(self) -> bool:
         """Whether this is a variant of the hierarchy (else a flat baseline)."""
         return self.predictor is not None
+
+    @property
+    def algorithm(self) -> str:
+        """A baseline's name in :data:`sb3_gccp.training.baselines.BASELINES` (its zoo file's stem)."""
+        return self.baseline or self.name
 
 
 METHODS = {
@@ -32,10 +42,13 @@ METHODS = {
         Method("dqn", "DQN"),
         Method("ppo", "PPO"),
         Method("sac_discrete", "SAC-Discrete"),
+        Method("dqn_paper", "DQN (paper-style)", baseline="dqn", paper_style=True),
+        Method("ppo_paper", "PPO (paper-style)", baseline="ppo", paper_style=True),
+        Method("sac_discrete_paper", "SAC-Discrete (paper-style)", baseline="sac_discrete", paper_style=True),
     )
 }
 """Every method, in training order (ours first)."""
-TABLE_1 = ("dqn", "ppo", "sac_discrete", "ours")
+TABLE_1 = ("dqn_paper", "ppo_paper", "sac_discrete_paper", "dqn", "ppo", "sac_discrete", "ours")
 TABLE_2 = ("with_cv", "without_gccp", "without_goal", "ours")
 PAPER_RESULTS: dict[str, tuple[tuple[float, float], ...]] = {
     "dqn": ((0, 28), (66, 32), (0, 26), (22.0, 28.7)),

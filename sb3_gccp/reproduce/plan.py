@@ -19,7 +19,7 @@ from sb3_gccp.frozen import load_planner
 from sb3_gccp.hyperparams import check_keys, default_config_file, load_hyperparams, resolve_policy_kwargs
 from sb3_gccp.networks import EncoderConfig
 from sb3_gccp.reproduce.methods import METHODS, Method
-from sb3_gccp.training.baselines import baseline_algorithm, max_episode_steps
+from sb3_gccp.training.baselines import MASKS_KEY, baseline_algorithm, max_episode_steps, uses_masks
 from sb3_gccp.training.decider import gccp_settings
 from sb3_gccp.training.planner import IMITATION_KEY, imitation_settings
 from sb3_gccp.training.run_folder import run_budget
@@ -65,7 +65,11 @@ class Preset:
             value = getattr(self, name)
             if value is not None and not isinstance(value, Mapping):
                 raise ValueError(f"preset {name} must be a map, got {value!r}")
-        groups = ("planner", "hierarchy", *(m.name for m in METHODS.values() if not m.is_hierarchy))
+        groups = (
+            "planner",
+            "hierarchy",
+            *dict.fromkeys(m.algorithm for m in METHODS.values() if not m.is_hierarchy),
+        )
         unknown = sorted(set(self.hyperparams) - set(groups))
         if unknown:
             raise ValueError(
@@ -185,11 +189,14 @@ def method_settings(method: Method, preset: Preset) -> dict[str, Any]:
             "hierarchy",
             (("policy_kwargs", "encoder"), ("gccp", "predictor_kwargs", "encoder")),
         )
-    entry = _shipped_entry(f"{method.name}.yml", FLAT_ENV_ID)
+    entry = _shipped_entry(f"{method.algorithm}.yml", FLAT_ENV_ID)
+    if method.paper_style:
+        entry[MASKS_KEY] = False
+        entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), "wrong_exit_penalty": False}
     encoders: tuple[tuple[str, ...], ...] = ()
     if (entry.get("policy_kwargs") or {}).get("features_extractor_class") == PLANNER_EXTRACTOR:
         encoders = (("policy_kwargs", "features_extractor_kwargs", "encoder"),)
-    entry = _customised(entry, preset, method.name, encoders)
+    entry = _customised(entry, preset, method.algorithm, encoders)
     # The episode budget ends training; n_timesteps only caps it (and places step schedules).
     world = IntersectionConfig.from_dict(entry.get("env_kwargs") or {})
     entry["n_timesteps"] = preset.episodes * max_episode_steps(world)
@@ -246,7 +253,10 @@ def check_settings(method: Method | None, settings: dict[str, Any]) -> None:
         else:
             imitation_settings(settings)
         return
-    check_keys(settings, baseline_algorithm(method.name))
+    check_keys(
+        {k: v for k, v in settings.items() if k != MASKS_KEY},
+        baseline_algorithm(method.algorithm, uses_masks(settings)),
+    )
     IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     resolve_policy_kwargs(settings.get("policy_kwargs") or {})
 

@@ -150,7 +150,7 @@ def _train_baseline(plan: Plan, method: Method, seed: int, run_dir: Path, label:
     if plan.request.torch_threads is not None:
         th.set_num_threads(plan.request.torch_threads)
     train_baseline(
-        method.name,
+        method.algorithm,
         plan.configs[method.name],
         run_dir,
         seed,
@@ -188,7 +188,7 @@ def _evaluation_env_and_policy(method: Method, run_dir: Path) -> tuple[Any, Any]
         option_env = hierarchy.make_env()
         return option_env, hierarchy.decider_policy(option_env.config)
     if not (run_dir / BASELINE_FILE).is_file():  # trained before baseline runs named their algorithm
-        write_baseline_spec(run_dir, method.name)
+        write_baseline_spec(run_dir, method.algorithm, masked=False)
     env, policy, _ = load_baseline(run_dir)
     return env, policy
 

@@ -23,6 +23,8 @@ from stable_baselines3.common.torch_layers import (
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_gccp.action_masks import mask_values
+
 DEFAULT_NET_ARCH = [256, 256]
 """Hidden layers of the actor and of each critic when ``net_arch`` is not given (SB3 SAC's default)."""
 
@@ -66,14 +68,15 @@ class Actor(BasePolicy):
         )
 
     def action_log_probs(self, obs: PyTorchObs) -> th.Tensor:
-        """log pi(a|s) of every action.
+        """log pi(a|s) of every action: a masked softmax when the observations carry action masks
+        (:mod:`sb3_gccp.action_masks`; a masked action's log-probability is about -1e8).
 
         :param obs: a batch of observations
         :return: (B, n_actions) log-probabilities
         """
         with th.set_grad_enabled(th.is_grad_enabled() and not self.share_features_extractor):
             features = self.extract_features(obs, self.features_extractor)
-        return th.log_softmax(self.logits_net(features), dim=-1)
+        return th.log_softmax(mask_values(self.logits_net(features), obs), dim=-1)
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Actions for a batch of observations: the most probable one, or one sampled from pi(.|s).

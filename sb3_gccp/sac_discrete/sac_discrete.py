@@ -20,6 +20,7 @@ from stable_baselines3.common.type_aliases import (
 )
 from stable_baselines3.common.utils import get_parameters_by_name, polyak_update
 
+from sb3_gccp.action_masks import MaskedRandomActions
 from sb3_gccp.sac_discrete.policies import (
     Actor,
     CnnPolicy,
@@ -36,7 +37,7 @@ TARGET_ENTROPY_RATIO = 0.6
 0.98 keeps the policy near uniform, so with few actions it never commits (a known problem)."""
 
 
-class SACDiscrete(OffPolicyAlgorithm):
+class SACDiscrete(MaskedRandomActions, OffPolicyAlgorithm):
     """Soft Actor-Critic for discrete action spaces (SAC-Discrete).
 
     Paper: https://arxiv.org/abs/1910.07207 (Christodoulou 2019, "Soft Actor-Critic for Discrete Action
@@ -50,6 +51,10 @@ class SACDiscrete(OffPolicyAlgorithm):
 
     The target critics follow the critics by Polyak averaging (``tau``) every ``target_update_interval``
     gradient steps.
+
+    With action masks in the observations (:mod:`sb3_gccp.action_masks`), pi is a masked softmax: the
+    masked actions have probability zero in every sum above, and warm-up actions are drawn from the
+    allowed ones.
 
     :param policy: the policy (``MlpPolicy``, ``CnnPolicy``, ``MultiInputPolicy`` or a class)
     :param env: the environment (or its registered id); its action space must be ``Discrete``

@@ -12,13 +12,20 @@ the motion-planner's networks, named in its zoo file (``zoo_configs/dqn.yml``, `
     checkpoints/    every ``save_every_episodes``: model.zip, replay_buffer.pkl (off-policy
                     algorithms), episodes.csv; ``train_baseline(..., resume=True)`` continues from them
 
-The baselines have no action masks: they are evaluated with their policy's ``predict(obs,
-deterministic=True)``, the policy rebuilt without unpickling (:mod:`sb3_gccp.safe_loading`).
+With ``action_masks: true`` in the entry (the shipped files' setting; sb3_gccp's own key) a baseline
+gets the motion-planner's road-keeping mask (the flat env's ``action_masks()``) in training and in
+evaluation: PPO is MaskablePPO, DQN is :class:`~sb3_gccp.maskable_dqn.MaskableDQN` (masked greedy,
+masked exploration) and SAC-Discrete takes a masked softmax; the last two read the mask from the
+observation (:mod:`sb3_gccp.action_masks`). ``action_masks: false`` (or no key, as in run folders
+from before the key) is the paper's unmasked baseline. Either way a baseline is evaluated with its
+policy's ``predict(obs, deterministic=True)``, the policy rebuilt without unpickling
+(:mod:`sb3_gccp.safe_loading`).
 """
 
 from __future__ import annotations
 
 import math
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +38,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from tqdm.auto import tqdm
 
 from gccp_envs.config import DT, IntersectionConfig
+from sb3_gccp.action_masks import ActionMaskObservation
 from sb3_gccp.constants import BASELINE_FILE, CONFIG_FILE, EPISODES_FILE, FLAT_ENV_ID, MODEL_FILE
 from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
@@ -45,18 +53,46 @@ BASELINES = {
     "sac_discrete": "sb3_gccp.sac_discrete.SACDiscrete",
 }
 """Baseline name (and zoo file ``<name>.yml``) -> its algorithm class, imported when first used."""
+MASKED_BASELINES = {
+    "dqn": "sb3_gccp.maskable_dqn.MaskableDQN",
+    "ppo": "sb3_contrib.MaskablePPO",
+    "sac_discrete": "sb3_gccp.sac_discrete.SACDiscrete",
+}
+"""The same with action masks (``action_masks: true``)."""
+MASKS_KEY = "action_masks"
+"""sb3_gccp's own key of a baseline's zoo entry: train and evaluate with the flat env's action masks."""
+MASKS_IN_OBSERVATION = ("dqn", "sac_discrete")
+"""Masked baselines that read the mask from the observation (the others ask the env)."""
 REPLAY_BUFFER_FILE = "replay_buffer.pkl"
 """An off-policy baseline's replay buffer, in its checkpoint folder."""
 
 
-def baseline_algorithm(name: str) -> type[BaseAlgorithm]:
-    """The algorithm class of a baseline.
+def baseline_algorithm(name: str, masked: bool = False) -> type[BaseAlgorithm]:
+    """The algorithm class of a baseline, with action masks or without.
 
     :raises ValueError: an unknown name
     """
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}: expected one of {', '.join(BASELINES)}")
-    return resolve_class(BASELINES[name])
+    return resolve_class((MASKED_BASELINES if masked else BASELINES)[name])
+
+
+def uses_masks(settings: dict[str, Any]) -> bool:
+    """Whether a baseline entry (or a run's config.yml) trains with action masks.
+
+    :raises ValueError: a value that is not true or false
+    """
+    masked = settings.get(MASKS_KEY, False)
+    if not isinstance(masked, bool):
+        raise ValueError(f"{MASKS_KEY} must be true or false, got {masked!r}")
+    return masked
+
+
+def flat_env(name: str, masked: bool, **kwargs: Any) -> gym.Env:
+    """``GCCPFlat-v0`` as a baseline sees it: with the action mask in its observation when the masked
+    baseline reads it from there."""
+    env = gym.make(FLAT_ENV_ID, **kwargs)
+    return ActionMaskObservation(env) if masked and name in MASKS_IN_OBSERVATION else env
 
 
 def max_episode_steps(world: IntersectionConfig) -> int:
@@ -160,19 +196,21 @@ def train_baseline(
         step count and schedules; the env workers start over from ``seed``)
     :param save_every_episodes: episodes between checkpoints
     """
-    algorithm = baseline_algorithm(name)
     settings = load_hyperparams(config_file, FLAT_ENV_ID)
-    check_keys(settings, algorithm)
+    masked = uses_masks(settings)
+    algorithm = baseline_algorithm(name, masked)
+    own = {k: v for k, v in settings.items() if k != MASKS_KEY}
+    check_keys(own, algorithm)
     world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     n_timesteps, n_envs = int(settings.get("n_timesteps", 1)), int(settings.get("n_envs", 1))
-    kwargs = algorithm_kwargs(settings, n_timesteps, "MultiInputPolicy", algorithm)
+    kwargs = algorithm_kwargs(own, n_timesteps, "MultiInputPolicy", algorithm)
     checkpoints = run_dir / "checkpoints"
     if resume and not has_checkpoint(run_dir):
         raise ValueError(f"no checkpoint to resume in {run_dir}")
     if not resume:
         run_dir.mkdir(parents=True, exist_ok=False)
         (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(settings, sort_keys=True))
-    env = make_run_env(FLAT_ENV_ID, n_envs, seed, {"config": world}, run_dir)
+    env = make_run_env(partial(flat_env, name, masked), n_envs, seed, {"config": world}, run_dir)
     history = read_episodes(checkpoints / EPISODES_FILE) if resume else []
     recorder = EpisodeRecorder(episodes, description, progress_bar, checkpoints, save_every_episodes, history)
     try:
@@ -192,7 +230,7 @@ def train_baseline(
     finally:
         env.close()
     model.save(run_dir / MODEL_FILE)
-    write_baseline_spec(run_dir, name)
+    write_baseline_spec(run_dir, name, masked)
     write_episodes(recorder.history, run_dir / EPISODES_FILE)
     return run_dir / MODEL_FILE
 
@@ -202,25 +240,29 @@ def has_checkpoint(run_dir: Path) -> bool:
     return (run_dir / "checkpoints" / EPISODES_FILE).is_file()
 
 
-def write_baseline_spec(run_dir: Path, name: str) -> None:
-    """Name the algorithm and the model of a baseline run folder in its ``baseline.yml``."""
-    (run_dir / BASELINE_FILE).write_text(yaml.safe_dump({"algorithm": name, "model": MODEL_FILE}))
+def write_baseline_spec(run_dir: Path, name: str, masked: bool) -> None:
+    """Name the algorithm, its action masks and the model of a baseline run folder in its
+    ``baseline.yml``."""
+    spec = {"algorithm": name, MASKS_KEY: masked, "model": MODEL_FILE}
+    (run_dir / BASELINE_FILE).write_text(yaml.safe_dump(spec, sort_keys=False))
 
 
-def read_baseline_spec(run_dir: Path) -> tuple[str, Path]:
-    """The algorithm's name and the model file named by a run folder's ``baseline.yml``, both checked.
+def read_baseline_spec(run_dir: Path) -> tuple[str, bool, Path]:
+    """The algorithm's name, whether it uses action masks (no key: it does not) and the model file
+    named by a run folder's ``baseline.yml``, all checked.
 
     :raises ValueError: with a one-line reason when something is missing
     """
     spec = read_yaml_mapping(run_dir / BASELINE_FILE, "baseline file")
     name = str(spec.get("algorithm"))
+    masked = uses_masks(spec)
     model = file_in_folder(run_dir, str(spec.get("model", MODEL_FILE)), f"{run_dir / BASELINE_FILE}: model")
     baseline_algorithm(name)
     if not model.is_file():
         raise ValueError(f"{run_dir / BASELINE_FILE} names a missing file: {model}")
     if not (run_dir / CONFIG_FILE).is_file():
         raise ValueError(f"no config.yml in {run_dir}")
-    return name, model
+    return name, masked, model
 
 
 def load_baseline(
@@ -233,21 +275,28 @@ def load_baseline(
     :return: ``GCCPFlat-v0`` on the run's world config, the evaluation policy and the algorithm's name
     :raises ValueError: with a one-line reason when something is missing, cannot be read or does not fit
     """
-    name, model = read_baseline_spec(run_dir)
+    name, masked, model = read_baseline_spec(run_dir)
     settings = read_yaml_mapping(run_dir / CONFIG_FILE, "run config")
     world = IntersectionConfig.from_dict({**(settings.get("env_kwargs") or {}), **(overrides or {})})
-    env = gym.make(FLAT_ENV_ID, config=world)
-    return env, baseline_policy(name, model, env, trusted), name
+    env = flat_env(name, masked, config=world)
+    return env, baseline_policy(name, model, env, trusted, masked), name
 
 
-def baseline_policy(name: str, path: Path, env: gym.Env, trusted: bool = False) -> Policy:
-    """A trained baseline as an evaluation policy for ``env`` (its spaces checked): deterministic, action
-    masks ignored (it has none)."""
-    kind = PolicyKind(f"{name} baseline", baseline_algorithm(name))
+def baseline_policy(
+    name: str, path: Path, env: gym.Env, trusted: bool = False, masked: bool = False
+) -> Policy:
+    """A trained baseline as an evaluation policy for ``env`` (its spaces checked): deterministic, with
+    the action masks when it was trained with them (MaskablePPO is handed them; the others read them
+    from the observation)."""
+    kind = PolicyKind(f"{name} baseline", baseline_algorithm(name, masked))
     policy = load_policy(path, kind, env.observation_space, env.action_space, trusted)
+    hand_masks = masked and name not in MASKS_IN_OBSERVATION
 
     def act(obs: dict[str, np.ndarray], action_mask: np.ndarray) -> int:
-        action, _ = policy.predict(obs, deterministic=True)
+        if hand_masks:
+            action, _ = policy.predict(obs, deterministic=True, action_masks=action_mask)  # type: ignore[call-arg]
+        else:
+            action, _ = policy.predict(obs, deterministic=True)
         return int(action)
 
     return act
