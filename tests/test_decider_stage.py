@@ -121,6 +121,10 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
         ),
         (["train", "--stage", "decider", "--planner", "none.zip"], "planner not found: none.zip"),
         (["train", "--stage", "all", "--resume"], "--resume works per stage"),
+        (
+            ["train", "--stage", "decider", "--planner", "scripted", "--set", "nonsense=1"],
+            "unknown intersection config key(s): 'nonsense'",
+        ),
         (["evaluate", "--model", "nowhere"], "model not found: nowhere"),
         (["evaluate", "--model", "."], "no hierarchy.yml in ."),
         (["evaluate", "--model", ".", "--episodes-per-task", "0"], "--episodes-per-task must be at least 1"),
@@ -171,12 +175,18 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
         str(config),
         "--log-folder",
         "runs",
+        "--set",
+        "duration=1.5",
     )
     result = sb3_gccp(*args, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (run,) = (tmp_path / "runs" / "decider").iterdir()
     assert not (run / "planner.zip").exists() and not (run / "predictor.pt").exists()
-    assert yaml.safe_load((run / "hierarchy.yml").read_text())["planner"] == "scripted"
+    written = yaml.safe_load((run / "hierarchy.yml").read_text())
+    assert written["planner"] == "scripted"
+    # --set replaced the entry's world key, for training and in what the run records.
+    assert written["world"]["duration"] == 1.5
+    assert yaml.safe_load((run / "config.yml").read_text())["env_kwargs"]["duration"] == 1.5
     result = sb3_gccp(
         "evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path
     )

@@ -12,7 +12,6 @@ from pathlib import Path
 from sb3_gccp.commands.common import (
     CLIError,
     add_torch_threads,
-    add_world_overrides,
     load_world_config,
     parse_assignments,
 )
@@ -75,7 +74,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="PredictorConfig field of both learned predictors (repeatable): cv_residual=true",
     )
-    add_world_overrides(predictor)
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="world config key (repeatable) of every env the stage trains on, over the zoo entry's "
+        "env_kwargs: --set traffic=sumo",
+    )
     parser.set_defaults(func=run)
 
 
@@ -101,6 +107,10 @@ def run(args: argparse.Namespace) -> None:
             raise CLIError(f"nothing to resume in {Path(args.log_folder) / args.stage}")
     if args.n_timesteps is not None and args.n_timesteps < 1:
         raise CLIError("-n/--n-timesteps must be positive")
+    if args.set and resume is not None:
+        raise CLIError("--set cannot change a resumed run's world: it keeps its config.yml")
+    world = parse_assignments(args.set)
+    load_world_config(None, args.set)  # every key known and in range, before anything is written
     request = StageRequest(
         config_file=config_file,
         seed=args.seed,
@@ -112,6 +122,7 @@ def run(args: argparse.Namespace) -> None:
         save_freq=args.save_freq,
         torch_threads=args.torch_threads,
         planner=Path(args.planner) if args.planner else None,
+        world=world,
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:

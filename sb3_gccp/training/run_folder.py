@@ -122,6 +122,8 @@ class StageRequest:
     """Stop the planner stage after this many episodes over all workers (N_g); None: ``n_timesteps``."""
     run_dir: Path | None = None
     """The folder of a new run; None: a new ``<log_folder>/<stage>/<env_id>_<seed>_<time>``."""
+    world: dict[str, Any] = field(default_factory=dict)
+    """World config keys replacing those of the entry's ``env_kwargs`` (``--set``; a new run only)."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
     def given_options(self) -> dict[str, Any]:
@@ -157,6 +159,8 @@ def open_run(request: StageRequest, env_id: str, stage: str) -> Run:
     if request.resume is None:
         options = RunOptions.resolve(request.given_options())
         settings = load_hyperparams(request.config_file, env_id)
+        if request.world:
+            settings["env_kwargs"] = {**(settings.get("env_kwargs") or {}), **request.world}
         if request.n_timesteps is not None:
             settings["n_timesteps"] = request.n_timesteps
         stamp = time.strftime("%Y%m%d-%H%M%S")
