@@ -211,6 +211,19 @@ def test_the_reporter_stops_training_when_the_trial_is_pruned():
     assert going == [True, True, True, False] and reporter.pruned
 
 
+def test_an_interrupted_trial_is_queued_again_with_its_hyperparameters(tmp_path, files, monkeypatch):
+    def interrupted(trial, settings):
+        settings.space.sample(trial)
+        raise KeyboardInterrupt  # Ctrl-C in the middle of the trial's training
+
+    monkeypatch.setattr("sb3_gccp.tune.study.run_trial", interrupted)
+    out = tmp_path / "out"
+    assert main(tune_args(files, out, 1)) == 130
+    failed, queued = stored(out).trials
+    assert failed.state == TrialState.FAIL and queued.state == TrialState.WAITING
+    assert queued.params == failed.params and queued.system_attrs["failed_trial"] == failed.number
+
+
 def running(out: Path) -> bool:
     if not (out / "study.db").is_file():
         return False
@@ -237,3 +250,18 @@ def test_two_worker_processes_share_the_budget_and_a_killed_study_resumes(tmp_pa
     killed = [t for t in trials if t.state == TrialState.FAIL]
     assert killed and all(any(r.system_attrs.get("failed_trial") == k.number for r in trials) for k in killed)
     assert len({t.user_attrs["worker"]["pid"] for t in trials if t.state == TrialState.COMPLETE}) >= 2
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ("dqn=best.yml", "--config for method(s) not reproduced: dqn"),
+        ("ppo", "--config expects METHOD=FILE, got 'ppo'"),
+        ("ppo=missing.yml", "hyperparameter file not found: missing.yml"),
+    ],
+)
+def test_reproduce_rejects_a_bad_zoo_file_option_in_one_line(tmp_path, monkeypatch, capsys, config, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["reproduce", "--preset", "quick", "--methods", "ppo", "--config", config]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line == f"sb3_gccp: error: {message}"

@@ -20,6 +20,7 @@ import json
 import multiprocessing
 import os
 import socket
+import textwrap
 import time
 import warnings
 import zlib
@@ -203,6 +204,16 @@ def retry_dead_trials(study: optuna.Study) -> list[int]:
     return failed
 
 
+def retry_interrupted_trials(study: optuna.Study) -> None:
+    """Queue again, with the same hyperparameters, the trials of this process that Optuna failed when
+    it was interrupted (Ctrl-C)."""
+    retry, me = _retry_callback(), _this_process()
+    retried = {t.system_attrs.get("failed_trial") for t in study.get_trials(deepcopy=False)}
+    for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
+        if trial.user_attrs.get("worker") == me and trial.number not in retried:
+            retry(study, trial)
+
+
 def objective(study: Study) -> Callable[[optuna.Trial], float]:
     """The objective of a worker: names the process on the trial, then trains it."""
 
@@ -230,7 +241,11 @@ def run_worker(study: Study, index: int, on_trial: Callable[[optuna.Study], None
         retry_dead_trials(optuna_study)
         if count(optuna_study, (*FINISHED, TrialState.RUNNING)) >= study.n_trials:
             return
-        optuna_study.optimize(run, n_trials=1)
+        try:
+            optuna_study.optimize(run, n_trials=1)
+        except KeyboardInterrupt:
+            retry_interrupted_trials(optuna_study)
+            raise
         if on_trial is not None:
             on_trial(optuna_study)
 
@@ -317,6 +332,9 @@ def write_best_entry(study: Study, optuna_study: optuna.Study) -> Path | None:
         "started from.",
     ]
     path = settings.study_dir / BEST_FILE
-    text = "".join(f"# {line}\n" for line in header)
+    text = "".join(
+        f"# {line}\n"
+        for line in textwrap.wrap(" ".join(header), 100, break_long_words=False, break_on_hyphens=False)
+    )
     path.write_text(text + "\n" + yaml.safe_dump(content, sort_keys=False))
     return path
