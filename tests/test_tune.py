@@ -146,7 +146,7 @@ def test_a_tiny_study_writes_a_best_entry_that_loads_and_a_second_call_adds_tria
 
     best = out / "ppo" / "best.yml"
     text = best.read_text()
-    assert f"study 'ppo' in sqlite:///{out / 'study.db'}" in text
+    assert f"Optuna study 'ppo'\n# in sqlite:///{out / 'study.db'}:" in text
     assert f"trial {study.best_trial.number}, rolling success" in text
     entry = load_hyperparams(best, "GCCPFlat-v0")
     check_keys(entry, baseline_algorithm("ppo"))
@@ -163,7 +163,12 @@ def test_a_tiny_study_writes_a_best_entry_that_loads_and_a_second_call_adds_tria
 
     # The same command with a larger budget joins the study and adds a trial; other settings are refused.
     assert main(tune_args(files, out, 3)) == 0
-    assert len(stored(out).get_trials(states=(TrialState.COMPLETE,))) == 3
+    trials = stored(out).get_trials(states=(TrialState.COMPLETE,))
+    assert len(trials) == 3
+    assert trials[2].params["learning_rate"] not in (
+        trials[0].params["learning_rate"],
+        trials[1].params["learning_rate"],
+    )
     args = tune_args(files, out, 5)
     args[args.index("--episodes-per-trial") + 1] = "6"
     assert main(args) == 2

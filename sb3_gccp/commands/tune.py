@@ -52,7 +52,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="zoo file whose entry trials start from (default: the shipped one, zoo_configs/METHOD.yml or "
         "ppo_mask.yml for the decider)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="training seed of every trial; sampler seed")
+    parser.add_argument("--seed", type=int, default=0, help="training seed of every trial (default 0)")
     parser.add_argument("--out", default="tune", help="storage, trial run folders and best.yml go here")
     parser.add_argument(
         "--planner",

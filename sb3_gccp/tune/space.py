@@ -111,7 +111,8 @@ class Hyperparameter:
             if not isinstance(value, number) or isinstance(value, bool) or not math.isfinite(value):
                 what = "an integer" if kind == "int" else "a number"
                 raise ValueError(f"{key} must be {what}, got {value!r}")
-        low, high = float(bounds["low"]), float(bounds["high"])  # type: ignore[arg-type]  # checked above
+        low, high = bounds["low"], bounds["high"]
+        assert low is not None and high is not None  # numbers, checked above
         log, step = spec.get("log", False), spec.get("step")
         if not isinstance(log, bool):
             raise ValueError(f"log must be true or false, got {log!r}")
@@ -121,7 +122,7 @@ class Hyperparameter:
             raise ValueError(f"a log scale needs low above 0, got {low!r}")
         if step is not None and (log or step <= 0):
             raise ValueError("step must be positive, and cannot go with log")
-        return cls(name, kind, low=bounds["low"], high=bounds["high"], log=log, step=step)
+        return cls(name, kind, low=low, high=high, log=log, step=step)
 
     def suggest(self, trial: optuna.Trial) -> Any:
         """The trial's value for the zoo entry (sampled, or given by an enqueued or retried trial)."""

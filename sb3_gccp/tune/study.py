@@ -128,7 +128,7 @@ def _retry_callback() -> Callable[[optuna.Study, FrozenTrial], None]:
         return optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)
 
 
-def open_study(study: Study, sampler: optuna.samplers.BaseSampler | None = None) -> optuna.Study:
+def open_study(study: Study) -> optuna.Study:
     """Create the study, or join it; a study made for another method, budget, space or entry is refused.
 
     :raises ValueError: one line saying what differs
@@ -138,7 +138,6 @@ def open_study(study: Study, sampler: optuna.samplers.BaseSampler | None = None)
         storage=open_storage(study.storage_url),
         study_name=study.name,
         direction="maximize",
-        sampler=sampler,
         pruner=pruner,
         load_if_exists=True,
     )
@@ -227,15 +226,16 @@ def objective(study: Study) -> Callable[[optuna.Trial], float]:
 def run_worker(study: Study, index: int, on_trial: Callable[[optuna.Study], None] | None = None) -> None:
     """Run trials until the study holds ``n_trials`` finished ones (counting those running elsewhere).
 
-    :param index: the worker's number on this machine: its sampler is seeded with ``seed``, ``index``
-        and the host name, so that no two workers propose the same first trials
+    :param index: the worker's number on this machine
     :param on_trial: called after every trial (the progress bar of a single worker)
     """
     th.set_num_threads(study.trials.torch_threads)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    host = zlib.crc32(socket.gethostname().encode())
-    sampler = optuna.samplers.TPESampler(seed=(study.trials.seed + 1000 * index + host) % 2**32)
-    optuna_study = open_study(study, sampler)
+    # A sampler seeded alike in two processes, or in two calls of one, proposes the same random first
+    # trials: each draws from its own seed (the process, and the trials the study already holds).
+    optuna_study = open_study(study)
+    key = f"{study.trials.seed}:{index}:{_this_process()}:{len(optuna_study.trials)}"
+    optuna_study.sampler = optuna.samplers.TPESampler(seed=zlib.crc32(key.encode()))
     run = objective(study)
     while True:
         retry_dead_trials(optuna_study)
@@ -277,6 +277,7 @@ def run_study(study: Study) -> optuna.Study:
             run_worker(study, 0, show)
         else:
             _run_processes(study, lambda: show(optuna_study))
+        show(optuna_study)  # trials that other processes finished meanwhile
     finally:
         bar.close()
     return optuna_study
@@ -294,7 +295,6 @@ def _run_processes(study: Study, show: Callable[[], None]) -> None:
     finally:
         for worker in workers:
             worker.join()
-    show()
     failed = [f"{i} (exit status {w.exitcode})" for i, w in enumerate(workers) if w.exitcode != 0]
     if failed:
         raise RuntimeError(f"worker process(es) failed: {', '.join(failed)}")
@@ -322,19 +322,17 @@ def write_best_entry(study: Study, optuna_study: optuna.Study) -> Path | None:
     pruned = count(optuna_study, (TrialState.PRUNED,))
     window = min(WINDOW, settings.episodes)
     header = [
-        f"The best trial of the Optuna study {study.name!r} in {display_url(study.storage_url)}:",
+        f"The best trial of the Optuna study {study.name!r}",
+        f"in {display_url(study.storage_url)}:",
         f"trial {best.number}, rolling success {best.value:.3f} over the last {window} of its "
-        f"{settings.episodes} training episodes",
-        f"(seed {settings.seed}); {finished} trials finished, {pruned} of them pruned.",
+        f"{settings.episodes} training episodes (seed {settings.seed});",
+        f"{finished} trials finished, {pruned} of them pruned.",
         f"Run folder: {best.user_attrs.get('run_dir', '?')}",
         f"Search space: {Path(settings.space.source).resolve()}",
-        f"Tuned keys: {', '.join(best.params)}; the rest is the {settings.method.env_id} entry trials "
-        "started from.",
+        *textwrap.wrap(f"Tuned keys: {', '.join(best.params)}.", 100, break_long_words=False),
+        f"The rest is the {settings.method.env_id} entry trials started from.",
     ]
     path = settings.study_dir / BEST_FILE
-    text = "".join(
-        f"# {line}\n"
-        for line in textwrap.wrap(" ".join(header), 100, break_long_words=False, break_on_hyphens=False)
-    )
+    text = "".join(f"# {line}\n" for line in header)
     path.write_text(text + "\n" + yaml.safe_dump(content, sort_keys=False))
     return path
