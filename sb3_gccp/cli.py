@@ -2,9 +2,9 @@
 
 It dispatches to one module per command (:mod:`sb3_gccp.commands`): ``rollout`` (the scripted
 hierarchy), ``train`` (a training stage), ``evaluate`` (a hierarchy or a baseline on seeded traffic),
-``video`` (one episode), ``reproduce`` (the paper's tables and figures), ``export`` (a run as a small
-folder) and ``config`` (the world config keys). Errors in the input are reported on one line and exit
-with status 2.
+``video`` (one episode), ``reproduce`` (the paper's tables and figures), ``tune`` (a hyperparameter
+search), ``export`` (a run as a small folder) and ``config`` (the world config keys). Errors in the
+input are reported on one line and exit with status 2.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sb3_gccp.commands import config, evaluate, export, reproduce, rollout, train, video
+from sb3_gccp.commands import config, evaluate, export, reproduce, rollout, train, tune, video
 from sb3_gccp.commands.common import CLIError
 
-COMMANDS = (rollout, train, evaluate, video, reproduce, export, config)
+COMMANDS = (rollout, train, evaluate, video, reproduce, tune, export, config)
 """The command modules, in the order ``--help`` lists them."""
 
 

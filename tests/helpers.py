@@ -68,6 +68,12 @@ TINY_PLANNER_HYPERPARAMS = {
 
 TINY_ENCODER = {"hidden_size": 16, "num_heads": 2, "token_size": 8, "token_heads": 2, "bev_channels": [4, 4]}
 """Encoder config fields of a tiny scene encoder, for fast network tests."""
+TINY_FLAT_POLICY_KWARGS = {
+    "features_extractor_class": "sb3_gccp.policies.PlannerFeaturesExtractor",
+    "features_extractor_kwargs": {"encoder": TINY_ENCODER},
+    "net_arch": [8],
+}
+"""``policy_kwargs`` of a baseline on the flat env with the tiny scene encoder."""
 
 
 def run_zoo(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:

@@ -30,6 +30,15 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--planner",
         help="motion-planner .zip, or 'scripted', for every hierarchy variant (default: train one per seed)",
     )
+    parser.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        metavar="METHOD=FILE",
+        help="a method's zoo file in place of the shipped entry (repeatable), such as the best.yml of "
+        "`sb3_gccp tune`: --config ppo=tune/ppo/best.yml (a hierarchy variant takes its GCCPDecider-v0 "
+        "entry)",
+    )
     parser.add_argument("--out", default="results", help="tables, CSV/JSON, figures and configs go here")
     parser.add_argument(
         "--log-folder", default="runs", help="runs go to LOG_FOLDER/reproduce/PRESET/seedK/METHOD"
@@ -57,6 +66,7 @@ def run(args: argparse.Namespace) -> None:
     request = ReproduceRequest(
         preset=args.preset,
         overrides=parse_assignments(args.set),
+        zoo_files=parse_zoo_files(args.config),
         seeds=tuple(args.seeds),
         methods=tuple(args.methods or METHODS),
         planner=Path(args.planner) if args.planner else None,
@@ -78,3 +88,14 @@ def run(args: argparse.Namespace) -> None:
     print(
         f"done in {results['wall_clock_s']:.0f} s: {request.out}/table1.md, table2.md, results.json, figures"
     )
+
+
+def parse_zoo_files(items: list[str]) -> dict[str, Path]:
+    """``--config METHOD=FILE`` options as a map of method to zoo file."""
+    files = {}
+    for item in items:
+        method, sep, file = item.partition("=")
+        if not sep or not method or not file:
+            raise CLIError(f"--config expects METHOD=FILE, got {item!r}")
+        files[method.strip()] = Path(file)
+    return files

@@ -171,11 +171,14 @@ def planner_settings(preset: Preset) -> dict[str, Any]:
     return _customised(entry, preset, "planner", (("policy_kwargs", "encoder"),))
 
 
-def method_settings(method: Method, preset: Preset) -> dict[str, Any]:
+def method_settings(method: Method, preset: Preset, zoo_file: Path | None = None) -> dict[str, Any]:
     """A method's zoo entry: ppo_mask.yml's decider entry with only the ``gccp`` schedule and predictor
-    changed, or the baseline's ``GCCPFlat-v0`` entry capped at ``episodes`` full-length episodes."""
+    changed, or the baseline's ``GCCPFlat-v0`` entry capped at ``episodes`` full-length episodes.
+
+    :param zoo_file: the file to take the entry from instead of the shipped one (``--config``)
+    """
     if method.is_hierarchy:
-        entry = _shipped_entry("ppo_mask.yml", DECIDER_ENV_ID)
+        entry = _shipped_entry("ppo_mask.yml", DECIDER_ENV_ID, zoo_file)
         entry["gccp"] = {
             **(entry.get("gccp") or {}),
             "predictor": method.predictor,
@@ -189,7 +192,7 @@ def method_settings(method: Method, preset: Preset) -> dict[str, Any]:
             "hierarchy",
             (("policy_kwargs", "encoder"), ("gccp", "predictor_kwargs", "encoder")),
         )
-    entry = _shipped_entry(f"{method.algorithm}.yml", FLAT_ENV_ID)
+    entry = _shipped_entry(f"{method.algorithm}.yml", FLAT_ENV_ID, zoo_file)
     if method.paper_style:
         entry[MASKS_KEY] = False
         entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), "wrong_exit_penalty": False}
@@ -208,8 +211,8 @@ def mask_after_episodes(preset: Preset) -> int:
     return gccp_settings(method_settings(METHODS["ours"], preset)).mask_after_episodes
 
 
-def _shipped_entry(file: str, env_id: str) -> dict[str, Any]:
-    return copy.deepcopy(load_hyperparams(default_config_file(file), env_id))
+def _shipped_entry(file: str, env_id: str, given: Path | None = None) -> dict[str, Any]:
+    return copy.deepcopy(load_hyperparams(given or default_config_file(file), env_id))
 
 
 def _customised(
@@ -269,6 +272,8 @@ class ReproduceRequest:
     preset: str = "paper"
     overrides: dict[str, Any] = field(default_factory=dict)
     """Preset fields to replace (:meth:`Preset.with_overrides`)."""
+    zoo_files: dict[str, Path] = field(default_factory=dict)
+    """Method -> the zoo file its entry comes from instead of the shipped one (such as ``tune``'s)."""
     seeds: tuple[int, ...] = (0,)
     """Training seeds; with several, the tables give mean and sample std over them."""
     methods: tuple[str, ...] = tuple(METHODS)
@@ -327,8 +332,11 @@ def prepare(request: ReproduceRequest) -> Plan:
     preset = PRESETS[request.preset].with_overrides(request.overrides)
     methods = [m for m in METHODS.values() if m.name in request.methods]
     files: dict[str, dict[str, Any]] = {}
+    unknown_files = sorted(set(request.zoo_files) - set(request.methods))
+    if unknown_files:
+        raise ValueError(f"--config for method(s) not reproduced: {', '.join(unknown_files)}")
     for method in methods:
-        entry = method_settings(method, preset)
+        entry = method_settings(method, preset, request.zoo_files.get(method.name))
         check_settings(method, entry)
         files[method.name] = {DECIDER_ENV_ID if method.is_hierarchy else FLAT_ENV_ID: entry}
         if given_planner is not None and method.is_hierarchy:  # a planner that does not fit fails here

@@ -183,6 +183,7 @@ def train_baseline(
     description: str = "",
     resume: bool = False,
     save_every_episodes: int = 250,
+    callback: BaseCallback | None = None,
 ) -> Path:
     """Train a baseline on ``GCCPFlat-v0`` for ``episodes`` episodes over all workers; return the model.
 
@@ -195,6 +196,7 @@ def train_baseline(
     :param resume: continue ``run_dir`` from its last checkpoint (model, replay buffer, episode rows,
         step count and schedules; the env workers start over from ``seed``)
     :param save_every_episodes: episodes between checkpoints
+    :param callback: an extra SB3 callback beside the episode recorder (``sb3_gccp tune``'s pruning)
     """
     settings = load_hyperparams(config_file, FLAT_ENV_ID)
     masked = uses_masks(settings)
@@ -223,7 +225,7 @@ def train_baseline(
         if len(history) < episodes:
             model.learn(
                 n_timesteps - model.num_timesteps,
-                callback=recorder,
+                callback=recorder if callback is None else [recorder, callback],
                 tb_log_name=name,
                 reset_num_timesteps=not resume,
             )

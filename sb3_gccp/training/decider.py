@@ -32,6 +32,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from sb3_contrib import MaskablePPO
+from stable_baselines3.common.callbacks import BaseCallback
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import (
@@ -92,11 +93,13 @@ def gccp_settings(settings: dict[str, Any]) -> GCCPSettings:
         raise HyperparamsError(str(err)) from err
 
 
-def train_decider(request: StageRequest) -> Path:
+def train_decider(request: StageRequest, callback: BaseCallback | None = None) -> Path:
     """Train the decision-maker with the frozen planner ``request.planner``; return the run folder.
 
     With ``request.resume`` (a decider run folder) training continues from its newest complete
     checkpoint, predictor, optimiser and replay buffer included, up to the same episode budget.
+
+    :param callback: an extra SB3 callback beside the GCCP callback (``sb3_gccp tune``'s pruning)
     """
     scripted = request.planner == Path(SCRIPTED)
     if request.resume is None and not scripted and (request.planner is None or not request.planner.is_file()):
@@ -112,7 +115,7 @@ def train_decider(request: StageRequest) -> Path:
         assert request.planner is not None
         load_planner(request.planner, world)  # and a planner that does not fit the world
     checkpoint = resume_checkpoint(run)
-    callback = GCCPCallback(
+    gccp_callback = GCCPCallback(
         gccp,
         predictor,
         EpisodeReplayBuffer(gccp.buffer_capacity),
@@ -120,7 +123,7 @@ def train_decider(request: StageRequest) -> Path:
         progress_bar=run.options.progress_bar,
         run_dir=run.dir,
     )
-    model = None if checkpoint is None else restore_decider(checkpoint, callback, run)
+    model = None if checkpoint is None else restore_decider(checkpoint, gccp_callback, run)
     planner = request.planner
     copies = {} if scripted or planner is None else {PLANNER_FILE: partial(shutil.copyfile, planner)}
     prepare_run_folder(run, request, checkpoint, copies)
@@ -145,16 +148,16 @@ def train_decider(request: StageRequest) -> Path:
     else:
         continue_model(model, env, run)
     try:
-        if callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
+        if gccp_callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
             model.learn(
                 n_timesteps - model.num_timesteps,
-                callback=callback,
+                callback=gccp_callback if callback is None else [gccp_callback, callback],
                 reset_num_timesteps=checkpoint is None,
                 tb_log_name="decider",
             )
     finally:
         env.close()
-    write_decider_run(run.dir, callback.checkpoint(model), callback.history, gccp, scripted, world)
+    write_decider_run(run.dir, gccp_callback.checkpoint(model), gccp_callback.history, gccp, scripted, world)
     return run.dir
 
 
