@@ -78,6 +78,8 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> None:
     """Check the request, run the reproduction and say where its outputs went."""
+    import torch as th
+
     from sb3_gccp.reproduce.collect import collect
     from sb3_gccp.reproduce.launchers import JobFailed, check_launcher, make_launcher, reproduce
     from sb3_gccp.reproduce.methods import METHODS
@@ -104,6 +106,8 @@ def run(args: argparse.Namespace) -> None:
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
     signal.signal(signal.SIGTERM, _interrupt)  # a killed reproduce stops its jobs as Ctrl-C does
+    if request.torch_threads is not None:  # the evaluations and figures made here; each job sets its own
+        th.set_num_threads(request.torch_threads)
     try:
         results = collect(plan) if args.collect else reproduce(plan, launcher)
     except (ValueError, OSError, JobFailed) as err:  # HyperparamsError included

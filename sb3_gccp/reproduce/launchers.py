@@ -87,7 +87,7 @@ class InProcessLauncher:
     :param plan_data: :meth:`~sb3_gccp.reproduce.plan.Plan.to_dict`
     """
 
-    slots = 1
+    slots: int | None = 1
 
     def __init__(self, plan_data: Mapping[str, Any]) -> None:
         self.plan_data = plan_data
@@ -139,7 +139,7 @@ class _ProcessJob:
         status, value = message
         if status != "ok":
             raise JobFailed(f"{value}; output in {self.log}")
-        return value  # type: ignore[no-any-return]
+        return value
 
     def cancel(self) -> None:
         self.process.terminate()
@@ -159,9 +159,10 @@ class ProcessLauncher:
     """
 
     def __init__(self, plan_data: Mapping[str, Any], slots: int, logs: Path) -> None:
-        self.plan_data, self.slots, self.logs = plan_data, slots, logs
+        self.plan_data, self.logs = plan_data, logs
+        self.slots: int | None = slots
         forkserver = "forkserver" in multiprocessing.get_all_start_methods()
-        self._context = multiprocessing.get_context("forkserver" if forkserver else "spawn")
+        self._context: Any = multiprocessing.get_context("forkserver" if forkserver else "spawn")
         if forkserver:
             self._context.set_forkserver_preload([run_job.__module__])
 
@@ -193,7 +194,7 @@ class _SubmititJob:
         from submitit.core.utils import FailedJobError, UncompletedJobError
 
         try:
-            return self.job.result()  # type: ignore[no-any-return]
+            return self.job.result()
         except (FailedJobError, UncompletedJobError) as err:
             lines = [line for line in str(err).splitlines() if line.strip()]
             reason = lines[-1].strip() if lines else type(err).__name__
