@@ -182,10 +182,10 @@ def test_collect_builds_the_tables_from_run_folders_alone(two_at_once, tmp_path)
     )
     assert collected.returncode == 0, collected.stderr
     assert "training" not in collected.stdout and "started" not in collected.stdout
-    for stem in ("table1", "table2"):
-        assert (tmp_path / "tables" / f"{stem}.md").read_text() == (
-            folder / "results" / f"{stem}.md"
-        ).read_text()
+    table1 = (tmp_path / "tables" / "table1.md").read_text()
+    present = [label for label in ("DQN", "PPO", "SAC-Discrete", "ours") if f"\n| {label} | " in table1]
+    assert present == ["DQN", "PPO", "ours"]  # the selection's runs, whatever else the folder holds
+    assert "\n| ours | " in (tmp_path / "tables" / "table2.md").read_text()
     assert (tmp_path / "tables" / "fig5_baselines.png").is_file()
 
     missing = reproduce(
