@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from gccp_envs.action import EgoState
 from gccp_envs.config import IntersectionConfig
@@ -120,3 +121,49 @@ def rewrite_zip_data(path: Path, **entries: object) -> None:
     with zipfile.ZipFile(path, "w") as archive:
         for name, content in files.items():
             archive.writestr(name, content)
+
+
+TINY_REPRODUCE = [
+    "episodes=2",
+    "mask_after_episodes=1",
+    "episodes_per_task=1",
+    "heldout_episodes=1",
+    "planner_timesteps=32",
+    f"encoder={yaml.safe_dump(TINY_ENCODER, default_flow_style=True).strip()}",
+    "world.duration=2.0",
+    "hyperparams.planner.n_steps=16",
+    "hyperparams.planner.batch_size=16",
+    "hyperparams.hierarchy.n_steps=4",
+    "hyperparams.hierarchy.batch_size=4",
+    "hyperparams.ppo.n_steps=8",
+    "hyperparams.ppo.batch_size=8",
+    "hyperparams.dqn.learning_starts=5",
+    "hyperparams.dqn.buffer_size=100",
+    "hyperparams.dqn.batch_size=8",
+    "hyperparams.sac_discrete.learning_starts=5",
+    "hyperparams.sac_discrete.buffer_size=100",
+    "hyperparams.sac_discrete.batch_size=8",
+]
+"""The quick preset shrunk to seconds: 2 episodes of 2 s per method, a 32-step planner, tiny networks."""
+
+
+def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    """``sb3_gccp reproduce --preset quick`` shrunk by ``TINY_REPRODUCE``, in a subprocess in ``cwd``."""
+    overrides = [*(arg for item in TINY_REPRODUCE for arg in ("--set", item)), *extra]
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sb3_gccp.cli",
+            "reproduce",
+            "--preset",
+            "quick",
+            "--torch-threads",
+            "1",
+            *overrides,
+        ],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )

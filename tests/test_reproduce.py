@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch as th
 import yaml
-from helpers import TINY_ENCODER
+from helpers import reproduce
 
 from sb3_gccp.cli import main
 from sb3_gccp.hyperparams import default_config_file, load_hyperparams
@@ -19,50 +19,7 @@ from sb3_gccp.reproduce.methods import METHODS, TABLE_1, TABLE_2
 from sb3_gccp.reproduce.plan import PRESETS, mask_after_episodes, method_settings, planner_settings
 from sb3_gccp.reproduce.report import aggregate, format_results_table
 
-TINY = [
-    "episodes=2",
-    "mask_after_episodes=1",
-    "episodes_per_task=1",
-    "heldout_episodes=1",
-    "planner_timesteps=32",
-    f"encoder={yaml.safe_dump(TINY_ENCODER, default_flow_style=True).strip()}",
-    "world.duration=2.0",
-    "hyperparams.planner.n_steps=16",
-    "hyperparams.planner.batch_size=16",
-    "hyperparams.hierarchy.n_steps=4",
-    "hyperparams.hierarchy.batch_size=4",
-    "hyperparams.ppo.n_steps=8",
-    "hyperparams.ppo.batch_size=8",
-    "hyperparams.dqn.learning_starts=5",
-    "hyperparams.dqn.buffer_size=100",
-    "hyperparams.dqn.batch_size=8",
-    "hyperparams.sac_discrete.learning_starts=5",
-    "hyperparams.sac_discrete.buffer_size=100",
-    "hyperparams.sac_discrete.batch_size=8",
-]
-"""The quick preset shrunk to seconds: 2 episodes of 2 s per method, a 32-step planner, tiny networks."""
 FIGURES = ("fig5_baselines", "fig6_ablations", "fig7_predictor_errors", "fig8_predictions")
-
-
-def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
-    overrides = [*(arg for item in TINY for arg in ("--set", item)), *extra]
-    return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "sb3_gccp.cli",
-            "reproduce",
-            "--preset",
-            "quick",
-            "--torch-threads",
-            "1",
-            *overrides,
-        ],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -75,8 +32,9 @@ def test_quick_preset_trains_evaluates_and_writes_tables_data_and_figures(reprod
     folder, result = reproduced
     assert result.returncode == 0, result.stderr
     out, root = folder / "results", folder / "runs" / "reproduce" / "quick"
-    assert "[1/11] seed 0 planner: training for 32 steps" in result.stdout
-    assert "[11/11] seed 0 sac_discrete_paper: training for 2 episodes" in result.stdout
+    assert "[1/12] seed 0 planner: training for 32 steps" in result.stdout
+    assert "[11/12] seed 0 sac_discrete_paper: training for 2 episodes" in result.stdout
+    assert "[12/12] seed 0 predictor_errors: finished in" in result.stdout
 
     for stem, names in (("table1", TABLE_1), ("table2", TABLE_2)):
         table = (out / f"{stem}.md").read_text()
@@ -123,7 +81,7 @@ def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(repr
 
     result = reproduce(folder)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.count("finished before, skipped") == 7
+    assert result.stdout.count("finished before, skipped") == 8  # all but dqn
     assert "seed 0 dqn: training for 2 episodes" in result.stdout
     assert "seed 0 dqn: an unfinished run without a checkpoint starts over" in result.stdout
     assert (root / "ours" / "decider.zip").stat().st_mtime_ns == ours_model
@@ -193,6 +151,9 @@ def test_stripped_model_keeps_its_weights_and_optimizer_settings(reproduced, tmp
         (["--set", "world.spawn_probabilty=0.1"], "unknown intersection config key(s)"),
         (["--set", "hyperparams.dqn.buffer_sise=5"], "unknown hyperparameter(s): 'buffer_sise'"),
         (["--set", "hyperparams.td3.tau=1"], "preset hyperparams: unknown group(s) 'td3'"),
+        (["--jobs", "0"], "--jobs must be at least 1, got 0"),
+        (["--launcher-set", "timeout_min=5"], "--launcher-set is for --launcher submitit"),
+        (["--collect", "out"], "no runs to collect: runs/reproduce/quick/preset.yml not found"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2_before_anything_is_written(

@@ -4,6 +4,7 @@ same episode budget, evaluate them on the same traffic flows, write the tables a
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -44,6 +45,33 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--log-folder", default="runs", help="runs go to LOG_FOLDER/reproduce/PRESET/seedK/METHOD"
     )
     parser.add_argument("--eval-seed", type=int, default=0, help="first traffic seed of the evaluation")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        help="runs at once, each (method, seed) run a job after the jobs it needs (default: 1 here, one "
+        "after another; every ready job with --launcher submitit)",
+    )
+    parser.add_argument(
+        "--launcher",
+        default="local",
+        choices=("local", "submitit"),
+        help="local: here (N processes with --jobs N); submitit: each job through submitit's AutoExecutor "
+        "(Slurm where sbatch is, else its local executor), logs in LOG_FOLDER/reproduce/PRESET/submitit",
+    )
+    parser.add_argument(
+        "--launcher-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a submitit parameter (repeatable): --launcher-set timeout_min=600 "
+        "--launcher-set slurm_partition=gpu (default timeout_min: 1440)",
+    )
+    parser.add_argument(
+        "--collect",
+        metavar="OUT",
+        help="train nothing: write the tables, data and figures into OUT from the finished runs of the "
+        "same --preset, --seeds, --methods, --planner and --log-folder (the preset is read from there)",
+    )
     add_torch_threads(parser, "the learners")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument(
@@ -59,9 +87,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> None:
     """Check the request, run the reproduction and say where its outputs went."""
+    import torch as th
+
+    from sb3_gccp.reproduce.collect import collect
+    from sb3_gccp.reproduce.launchers import JobFailed, check_launcher, make_launcher, reproduce
     from sb3_gccp.reproduce.methods import METHODS
     from sb3_gccp.reproduce.plan import ReproduceRequest, prepare
-    from sb3_gccp.reproduce.runner import reproduce
 
     request = ReproduceRequest(
         preset=args.preset,
@@ -70,20 +101,26 @@ def run(args: argparse.Namespace) -> None:
         seeds=tuple(args.seeds),
         methods=tuple(args.methods or METHODS),
         planner=Path(args.planner) if args.planner else None,
-        out=Path(args.out),
+        out=Path(args.collect or args.out),
         log_folder=Path(args.log_folder),
         eval_seed=args.eval_seed,
         torch_threads=args.torch_threads,
         progress_bar=not args.no_progress,
         argv=["sb3_gccp", *sys.argv[1:]],
     )
+    launcher_set = parse_assignments(args.launcher_set, "--launcher-set")
     try:
-        plan = prepare(request)
+        check_launcher(args.launcher, args.jobs, launcher_set)
+        plan = prepare(request, collect=args.collect is not None)
+        launcher = None if args.collect else make_launcher(plan, args.launcher, args.jobs, launcher_set)
     except (ValueError, TypeError, OSError) as err:
         raise CLIError(str(err)) from err
+    signal.signal(signal.SIGTERM, _interrupt)  # a killed reproduce stops its jobs as Ctrl-C does
+    if request.torch_threads is not None:  # the evaluations and figures made here; each job sets its own
+        th.set_num_threads(request.torch_threads)
     try:
-        results = reproduce(plan)
-    except (ValueError, OSError) as err:  # HyperparamsError included
+        results = collect(plan) if args.collect else reproduce(plan, launcher)
+    except (ValueError, OSError, JobFailed) as err:  # HyperparamsError included
         raise CLIError(str(err)) from err
     print(
         f"done in {results['wall_clock_s']:.0f} s: {request.out}/table1.md, table2.md, results.json, figures"
@@ -99,3 +136,7 @@ def parse_zoo_files(items: list[str]) -> dict[str, Path]:
             raise CLIError(f"--config expects METHOD=FILE, got {item!r}")
         files[method.strip()] = Path(file)
     return files
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt

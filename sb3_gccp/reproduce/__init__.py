@@ -17,6 +17,8 @@ Folders::
                                         training.baselines), plus training.json once training
                                         finished and evaluation.json
         seed<k>/predictor_errors.json   Fig. 7's numbers
+        logs/seed<k>_<job>.log          each job's output, with --jobs N
+        submitit/                       submitit's pickles and job logs, with --launcher submitit
     <out>/
         configs/<method>.yml            the zoo file each method trained from (and configs/planner.yml)
         table1.md, table2.md            the paper's tables: success / collision per task, timeouts
@@ -26,12 +28,18 @@ Folders::
         fig7_predictor_errors.png       ADE/FDE at 1 s: learned, no-goal and constant-velocity predictor
         fig8_predictions.png            goal-conditioned predictions in three scenes
 
-Running the command again skips every method whose run holds ``training.json`` (and its evaluation,
-when ``evaluation.json`` matches); an unfinished planner or hierarchy variant continues from its last
-checkpoint, an unfinished baseline starts over.
+Every (method, seed) run is a job (:mod:`~sb3_gccp.reproduce.jobs`): the hierarchy variants of a
+seed after its planner job, the baselines at once. They run here one after another, N at once in
+processes, or through submitit (:mod:`~sb3_gccp.reproduce.launchers`); the tables are then built from
+the run folders alone (:mod:`~sb3_gccp.reproduce.collect`, also ``reproduce --collect``). Running the
+command again skips every job whose run holds ``training.json`` and a matching ``evaluation.json``; an
+unfinished planner, hierarchy variant or baseline continues from its last checkpoint, or starts over
+without one.
 
 Modules: :mod:`~sb3_gccp.reproduce.methods` (the rows of the tables), :mod:`~sb3_gccp.reproduce.plan`
 (presets, each method's zoo entry, the checked request), :mod:`~sb3_gccp.reproduce.runner` (training
-and evaluating every method once), :mod:`~sb3_gccp.reproduce.report` (tables and CSV) and
-:mod:`~sb3_gccp.reproduce.figures` (Figs. 5-8).
+and evaluating one run once), :mod:`~sb3_gccp.reproduce.jobs` (the job graph, the job function),
+:mod:`~sb3_gccp.reproduce.launchers` (where jobs run, the scheduler),
+:mod:`~sb3_gccp.reproduce.collect` (the results from run folders), :mod:`~sb3_gccp.reproduce.report`
+(tables and CSV) and :mod:`~sb3_gccp.reproduce.figures` (Figs. 5-8).
 """

@@ -24,6 +24,8 @@ from sb3_gccp.training.decider import gccp_settings
 from sb3_gccp.training.planner import IMITATION_KEY, imitation_settings
 from sb3_gccp.training.run_folder import run_budget
 
+PRESET_FILE = "preset.yml"
+"""In a reproduction's folder: the preset settings its runs were made with."""
 PLANNER_EXTRACTOR = "sb3_gccp.policies.PlannerFeaturesExtractor"
 """The baselines' features extractor, named in their zoo files: the preset's encoder goes to it."""
 
@@ -289,6 +291,26 @@ class ReproduceRequest:
     progress_bar: bool = True
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data (strings, numbers, lists, maps), as a job on another process or machine takes it."""
+        data = asdict(self)
+        for name in ("planner", "out", "log_folder"):
+            data[name] = None if data[name] is None else str(data[name])
+        data["seeds"], data["methods"] = list(self.seeds), list(self.methods)
+        data["zoo_files"] = {method: str(file) for method, file in self.zoo_files.items()}
+        return data
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ReproduceRequest:
+        """The request :meth:`to_dict` gave."""
+        values = dict(data)
+        for name in ("out", "log_folder"):
+            values[name] = Path(values[name])
+        values["planner"] = None if values["planner"] is None else Path(values["planner"])
+        values["seeds"], values["methods"] = tuple(values["seeds"]), tuple(values["methods"])
+        values["zoo_files"] = {method: Path(file) for method, file in (values.get("zoo_files") or {}).items()}
+        return cls(**values)
+
 
 @dataclass
 class Plan:
@@ -307,11 +329,39 @@ class Plan:
         """Whether a motion-planner is trained per seed."""
         return self.request.planner is None and any(m.is_hierarchy for m in self.methods)
 
+    def run_dir(self, seed: int, name: str) -> Path:
+        """The run folder of a method (or of the planner, ``name`` 'planner') for a training seed."""
+        return self.root / f"seed{seed}" / name
 
-def prepare(request: ReproduceRequest) -> Plan:
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data: what a job needs to rebuild the plan in another process, on any machine that
+        sees the same paths."""
+        return {
+            "request": self.request.to_dict(),
+            "preset": self.preset.to_dict(),
+            "methods": [m.name for m in self.methods],
+            "root": str(self.root),
+            "configs": {name: str(path) for name, path in self.configs.items()},
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Plan:
+        """The plan :meth:`to_dict` gave, without checking it again."""
+        return cls(
+            ReproduceRequest.from_dict(data["request"]),
+            Preset.from_dict(data["preset"]),
+            [METHODS[name] for name in data["methods"]],
+            Path(data["root"]),
+            {name: Path(path) for name, path in data["configs"].items()},
+        )
+
+
+def prepare(request: ReproduceRequest, collect: bool = False) -> Plan:
     """Check a request, write the methods' zoo files into ``<out>/configs`` and the preset into the
     reproduction's folder.
 
+    :param collect: only read finished runs: the preset is the one the reproduction's folder holds
+        (``--set`` applied over it), and that folder must exist
     :raises ValueError: bad input, with a one-line reason; nothing is written then
     """
     if request.preset not in PRESETS:
@@ -329,7 +379,15 @@ def prepare(request: ReproduceRequest) -> Plan:
     given_planner = request.planner if request.planner != Path(SCRIPTED) else None
     if given_planner is not None and not given_planner.is_file():
         raise ValueError(f"planner not found: {request.planner} (give a planner .zip or 'scripted')")
-    preset = PRESETS[request.preset].with_overrides(request.overrides)
+    root = request.log_folder / "reproduce" / request.preset
+    base = PRESETS[request.preset]
+    if collect:
+        if not (root / PRESET_FILE).is_file():
+            raise ValueError(
+                f"no runs to collect: {root / PRESET_FILE} not found (check --log-folder, --preset)"
+            )
+        base = Preset.from_dict(yaml.safe_load((root / PRESET_FILE).read_text()))
+    preset = base.with_overrides(request.overrides)
     methods = [m for m in METHODS.values() if m.name in request.methods]
     files: dict[str, dict[str, Any]] = {}
     unknown_files = sorted(set(request.zoo_files) - set(request.methods))
@@ -345,11 +403,11 @@ def prepare(request: ReproduceRequest) -> Plan:
         entry = planner_settings(preset)
         check_settings(None, entry)
         files["planner"] = {PLANNER_ENV_ID: entry}
-    root = request.log_folder / "reproduce" / request.preset
     _check_same_preset(root, preset)
 
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "preset.yml").write_text(yaml.safe_dump(preset.to_dict(), sort_keys=True))
+    if not collect:
+        root.mkdir(parents=True, exist_ok=True)
+        (root / PRESET_FILE).write_text(yaml.safe_dump(preset.to_dict(), sort_keys=True))
     (request.out / "configs").mkdir(parents=True, exist_ok=True)
     configs = {name: request.out / "configs" / f"{name}.yml" for name in files}
     for name, content in files.items():
@@ -364,7 +422,7 @@ def _with_hint(name: str, known: list[str]) -> str:
 
 def _check_same_preset(root: Path, preset: Preset) -> None:
     """Finished runs are reused only with the settings they were made with."""
-    file = root / "preset.yml"
+    file = root / PRESET_FILE
     if not file.is_file():
         return
     before = yaml.safe_load(file.read_text())

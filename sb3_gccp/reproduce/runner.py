@@ -1,4 +1,8 @@
-"""Training and evaluating every method of a reproduction once: finished runs are reused."""
+"""Training and evaluating one run of a reproduction once: finished runs are reused.
+
+Each record (``training.json``, ``evaluation.json``, ``predictor_errors.json``) is written atomically
+once its work is done, so a run folder holding it is finished whatever killed the process after.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ import json
 import math
 import shutil
 import time
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -31,27 +36,43 @@ from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer, collect_decisions
 from sb3_gccp.gccp.training import displacement_errors
 from sb3_gccp.hierarchy import load_hierarchy
-from sb3_gccp.reproduce.methods import METHODS, PAPER_RESULTS, Method
-from sb3_gccp.reproduce.plan import Plan, mask_after_episodes
-from sb3_gccp.reproduce.report import aggregate, write_outputs
+from sb3_gccp.reproduce.methods import Method
+from sb3_gccp.reproduce.plan import Plan
 from sb3_gccp.safe_loading import SavedModel
 from sb3_gccp.training.baselines import has_checkpoint, load_baseline, train_baseline, write_baseline_spec
+from sb3_gccp.training.checkpoints import write_atomically
 from sb3_gccp.training.decider import train_decider
 from sb3_gccp.training.episodes import read_episodes
 from sb3_gccp.training.planner import train_planner
 from sb3_gccp.training.predictor import HELDOUT_SEED_OFFSET
 from sb3_gccp.training.run_folder import StageRequest
 
+PREDICTOR_ERRORS_FILE = "predictor_errors.json"
+"""In a seed's folder: Fig. 7's numbers for that seed."""
 
-def _finished(run_dir: Path) -> dict[str, Any] | None:
+
+def finished_training(run_dir: Path) -> dict[str, Any] | None:
+    """The training record of a run whose training finished, else None."""
     file = run_dir / TRAINING_FILE
     return json.loads(file.read_text()) if file.is_file() else None
 
 
+def _saved(file: Path, key: Mapping[str, Any]) -> dict[str, Any] | None:
+    """A JSON record if it exists and was made with the values of ``key``."""
+    if not file.is_file():
+        return None
+    saved = json.loads(file.read_text())
+    return saved if all(saved.get(k) == v for k, v in key.items()) else None
+
+
+def _write_record(file: Path, record: Mapping[str, Any], indent: int = 2) -> None:
+    write_atomically(file, lambda path: path.write_text(json.dumps(record, indent=indent) + "\n"))
+
+
 def train_planner_once(plan: Plan, seed: int, label: str) -> tuple[Path, dict[str, Any]]:
     """The seed's motion-planner: trained (or continued), or the finished one; its path and record."""
-    run_dir = plan.root / f"seed{seed}" / "planner"
-    record = _finished(run_dir)
+    run_dir = plan.run_dir(seed, "planner")
+    record = finished_training(run_dir)
     if record is not None:
         print(f"{label}: finished before, skipped", flush=True)
         return run_dir / PLANNER_FILE, record
@@ -62,7 +83,7 @@ def train_planner_once(plan: Plan, seed: int, label: str) -> tuple[Path, dict[st
         **planner_budget(path, run_dir / "monitor"),
         "wall_clock_s": round(time.perf_counter() - start, 1),
     }
-    (run_dir / TRAINING_FILE).write_text(json.dumps(record, indent=2) + "\n")
+    _write_record(run_dir / TRAINING_FILE, record)
     print(f"{label}: trained {record['timesteps']:,} steps in {record['wall_clock_s']:.0f} s", flush=True)
     return path, record
 
@@ -99,14 +120,9 @@ def train_method_once(
     plan: Plan, method: Method, seed: int, planner: Path | None, label: str
 ) -> dict[str, Any]:
     """Train a method for the preset's episodes unless its run finished before; return its record."""
-    run_dir = plan.root / f"seed{seed}" / method.name
-    record = _finished(run_dir)
+    run_dir = plan.run_dir(seed, method.name)
+    record = finished_method_training(plan, method, seed, planner)
     if record is not None:
-        if method.is_hierarchy and planner is not None and not _same_planner(run_dir, planner):
-            raise ValueError(
-                f"{run_dir} was trained over another planner than {planner}: "
-                "give the same --planner or another --log-folder"
-            )
         print(f"{label}: finished before, skipped", flush=True)
         return record
     print(f"{label}: training for {plan.preset.episodes:,} episodes", flush=True)
@@ -123,8 +139,30 @@ def train_method_once(
         "timesteps": history[-1]["timesteps"] if history else 0,
         "wall_clock_s": round(time.perf_counter() - start, 1),
     }
-    (run_dir / TRAINING_FILE).write_text(json.dumps(record, indent=2) + "\n")
+    _write_record(run_dir / TRAINING_FILE, record)
     print(f"{label}: trained {record['episodes']} episodes in {record['wall_clock_s']:.0f} s", flush=True)
+    return record
+
+
+def finished_method_training(
+    plan: Plan, method: Method, seed: int, planner: Path | None
+) -> dict[str, Any] | None:
+    """The training record of a method's finished run, else None.
+
+    :raises ValueError: a finished hierarchy variant was trained over another planner than ``planner``
+    """
+    run_dir = plan.run_dir(seed, method.name)
+    record = finished_training(run_dir)
+    if (
+        record is not None
+        and method.is_hierarchy
+        and planner is not None
+        and not _same_planner(run_dir, planner)
+    ):
+        raise ValueError(
+            f"{run_dir} was trained over another planner than {planner}: "
+            "give the same --planner or another --log-folder"
+        )
     return record
 
 
@@ -163,23 +201,29 @@ def _train_baseline(plan: Plan, method: Method, seed: int, run_dir: Path, label:
 
 def evaluate_once(plan: Plan, method: Method, seed: int, label: str) -> dict[str, Any]:
     """The method's evaluation on the preset's flows per task: computed, or read if it was before."""
-    run_dir = plan.root / f"seed{seed}" / method.name
-    key = {"eval_seed": plan.request.eval_seed, "episodes_per_task": plan.preset.episodes_per_task}
-    file = run_dir / EVALUATION_FILE
-    if file.is_file():
-        saved = json.loads(file.read_text())
-        if all(saved.get(k) == v for k, v in key.items()):
-            return saved
+    run_dir = plan.run_dir(seed, method.name)
+    saved = finished_evaluation(plan, method.name, seed)
+    if saved is not None:
+        return saved
     print(f"{label}: evaluating on {plan.preset.episodes_per_task} traffic flow(s) per task", flush=True)
     env, policy = _evaluation_env_and_policy(method, run_dir)
     results = evaluate(
         env, policy, TASKS, plan.preset.episodes_per_task, plan.request.eval_seed, plan.request.progress_bar
     )
-    saved = {**key, "table": summarize(results), "episodes": [asdict(r) for r in results]}
-    file.write_text(json.dumps(saved, indent=1) + "\n")
+    saved = {**_evaluation_key(plan), "table": summarize(results), "episodes": [asdict(r) for r in results]}
+    _write_record(run_dir / EVALUATION_FILE, saved, indent=1)
     overall = saved["table"]["overall"]
     print(f"{label}: success {overall['success']:.1f} %, collision {overall['crashed']:.1f} %", flush=True)
     return saved
+
+
+def _evaluation_key(plan: Plan) -> dict[str, int]:
+    return {"eval_seed": plan.request.eval_seed, "episodes_per_task": plan.preset.episodes_per_task}
+
+
+def finished_evaluation(plan: Plan, name: str, seed: int) -> dict[str, Any] | None:
+    """A method's evaluation if it was made on the plan's flows, else None."""
+    return _saved(plan.run_dir(seed, name) / EVALUATION_FILE, _evaluation_key(plan))
 
 
 def _evaluation_env_and_policy(method: Method, run_dir: Path) -> tuple[Any, Any]:
@@ -196,21 +240,11 @@ def _evaluation_env_and_policy(method: Method, run_dir: Path) -> tuple[Any, Any]
 def predictor_errors_once(plan: Plan, seed: int) -> dict[str, Any]:
     """Fig. 7's numbers for a seed: ADE/FDE of ours's, the no-goal ablation's and the CV predictor on
     decisions ours drives on held-out traffic seeds; computed once."""
-    seed_dir = plan.root / f"seed{seed}"
-    predictors = {"learned": seed_dir / "ours" / PREDICTOR_FILE}
-    if any(m.name == "without_goal" for m in plan.methods):
-        predictors["no_goal"] = seed_dir / "without_goal" / PREDICTOR_FILE
-    key = {
-        "eval_seed": plan.request.eval_seed,
-        "heldout_episodes": plan.preset.heldout_episodes,
-        "predictors": sorted(predictors),
-    }
-    file = seed_dir / "predictor_errors.json"
-    if file.is_file():
-        saved = json.loads(file.read_text())
-        if all(saved.get(k) == v for k, v in key.items()):
-            return saved
-    hierarchy = load_hierarchy(seed_dir / "ours")
+    predictors = _predictors(plan, seed)
+    saved = finished_predictor_errors(plan, seed)
+    if saved is not None:
+        return saved
+    hierarchy = load_hierarchy(plan.run_dir(seed, "ours"))
     world = IntersectionConfig.from_dict(dict(hierarchy.world))
     per_episode = math.ceil(world.duration / (world.decision_period * DT)) + 1
     buffer = EpisodeReplayBuffer(capacity=plan.preset.heldout_episodes * per_episode)
@@ -224,67 +258,27 @@ def predictor_errors_once(plan: Plan, seed: int) -> dict[str, Any]:
         name: displacement_errors(model, buffer)
         for name, model in {**models, "cv": ConstantVelocityPredictor()}.items()
     }
-    saved = {**key, "decisions": decisions, "errors": errors}
-    file.write_text(json.dumps(saved, indent=2) + "\n")
+    saved = {**_predictor_errors_key(plan, seed), "decisions": decisions, "errors": errors}
+    _write_record(plan.root / f"seed{seed}" / PREDICTOR_ERRORS_FILE, saved)
     return saved
 
 
-# --- the whole reproduction ------------------------------------------------------------------------
-def reproduce(plan: Plan) -> dict[str, Any]:
-    """Train and evaluate every method for every seed, then write the tables, data and figures.
+def _predictors(plan: Plan, seed: int) -> dict[str, Path]:
+    """Fig. 7's trained predictors of a seed: ours's, and the no-goal ablation's when it is run."""
+    predictors = {"learned": plan.run_dir(seed, "ours") / PREDICTOR_FILE}
+    if any(m.name == "without_goal" for m in plan.methods):
+        predictors["no_goal"] = plan.run_dir(seed, "without_goal") / PREDICTOR_FILE
+    return predictors
 
-    :return: what ``results.json`` holds
-    """
-    started = time.perf_counter()
-    request = plan.request
-    total = len(request.seeds) * (len(plan.methods) + int(plan.trains_planner))
-    step = 0
-    runs: dict[str, dict[int, dict[str, Any]]] = {m.name: {} for m in plan.methods}
-    planners: dict[int, dict[str, Any]] = {}
-    for seed in request.seeds:
-        planner = request.planner
-        if plan.trains_planner:
-            step += 1
-            planner, planners[seed] = train_planner_once(plan, seed, f"[{step}/{total}] seed {seed} planner")
-        elif planner is not None:
-            planners[seed] = {**planner_budget(planner, None), "given": True}
-        for method in plan.methods:
-            step += 1
-            label = f"[{step}/{total}] seed {seed} {method.name}"
-            training = train_method_once(plan, method, seed, planner, label)
-            evaluation = evaluate_once(plan, method, seed, label)
-            runs[method.name][seed] = {
-                "run_dir": str(plan.root / f"seed{seed}" / method.name),
-                "training": training,
-                "table": evaluation["table"],
-            }
-    errors = {}
-    if "ours" in runs:
-        errors = {seed: predictor_errors_once(plan, seed) for seed in request.seeds}
-    results = {
-        "preset": request.preset,
-        "settings": plan.preset.to_dict(),
-        "seeds": list(request.seeds),
-        "eval_seed": request.eval_seed,
-        "episodes_per_task": plan.preset.episodes_per_task,
-        "budget": {
-            "episodes_per_method": plan.preset.episodes,
-            "mask_after_episodes": mask_after_episodes(plan.preset),
-            "planner_pretraining": {str(s): p for s, p in planners.items()},
-        },
-        "methods": {
-            name: {"label": METHODS[name].label, "runs": {str(s): r for s, r in seed_runs.items()}}
-            for name, seed_runs in runs.items()
-        },
-        "tables": {
-            name: aggregate([r["table"] for r in seed_runs.values()]) for name, seed_runs in runs.items()
-        },
-        "predictor_errors": {str(s): e for s, e in errors.items()},
-        "paper": {
-            name: dict(zip((*TASKS, "overall"), rows, strict=True)) for name, rows in PAPER_RESULTS.items()
-        },
+
+def _predictor_errors_key(plan: Plan, seed: int) -> dict[str, Any]:
+    return {
+        "eval_seed": plan.request.eval_seed,
+        "heldout_episodes": plan.preset.heldout_episodes,
+        "predictors": sorted(_predictors(plan, seed)),
     }
-    write_outputs(plan, runs, errors)
-    results["wall_clock_s"] = round(time.perf_counter() - started, 1)
-    (request.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
-    return results
+
+
+def finished_predictor_errors(plan: Plan, seed: int) -> dict[str, Any] | None:
+    """Fig. 7's numbers of a seed if they were computed for the plan, else None."""
+    return _saved(plan.root / f"seed{seed}" / PREDICTOR_ERRORS_FILE, _predictor_errors_key(plan, seed))
