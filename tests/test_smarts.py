@@ -61,11 +61,11 @@ def test_the_scenarios_build_from_scratch_with_flow_k_the_same_every_build(tmp_p
             folder = scenario_folder(config, layout, task)
             assert (folder / MAP_FILE).read_bytes() == network_file(layout).read_bytes()
             assert (folder / MISSIONS_FILE).is_file()
-            built[cache, task] = [departures(traffic_specs(folder, k)[0]) for k in range(2)]
+        built[cache] = [departures(traffic_specs(config, layout, k)[0]) for k in range(2)]
         assert not list((tmp_path / cache).rglob(".build-*"))  # no half-built folder is left
-    flow0, flow1 = built["first", "left"]
+    flow0, flow1 = built["first"]
     assert len(flow0) > 10 and flow0 != flow1  # two different flows ...
-    assert built["second", "left"] == built["first", "left"]  # ... each the same at every build
+    assert built["second"] == built["first"]  # ... each the same at every build
 
 
 @needs_smarts

@@ -38,7 +38,7 @@ def fix_via_sort(sensor_class: type) -> bool:
 
     :return: whether the fix was applied
     """
-    method = sensor_class.__call__  # type: ignore[operator]
+    method = sensor_class.__call__
     if not via_sort_needs_fix(method):
         return False
     code = method.__code__

@@ -1,8 +1,9 @@
 """The three tasks as SMARTS scenarios, written with ``smarts.sstudio`` into a cache folder on first use.
 
-One scenario folder per task: our junction as SUMO network (``envs/sumo/network.py``, the same file the
-``sumo`` backend drives), ``smarts_flows`` traffic variations of SUMO flows at our density and speeds, and
-the ego's mission from the south arm to the task's exit arm, entering after ``warmup_time``.
+One scenario folder per task, with our junction as SUMO network (``envs/sumo/network.py``, the same file
+the ``sumo`` backend drives) and the ego's mission from the south arm to the task's exit arm, entering after
+``warmup_time``; and one folder of ``smarts_flows`` traffic variations the three share, SUMO flows at our
+density and speeds.
 
 A flow is SMARTS's: sstudio writes randomly spaced flows and ``duarouter`` draws every departure when the
 scenario is built, with seed ``k`` for variation ``k`` (sstudio's ``seed + iteration``). So flow ``k`` is
@@ -62,28 +63,34 @@ def scenario_root(config: IntersectionConfig, layout: IntersectionLayout) -> Pat
 
 
 def scenario_folder(config: IntersectionConfig, layout: IntersectionLayout, task: str) -> Path:
-    """The scenario folder of ``task``, generated on first use (a second or two per task).
+    """The scenario folder of ``task`` (our junction and the ego's mission), generated on first use.
 
     :raises ValueError: an unknown task
     """
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}: expected one of {', '.join(TASKS)}")
     folder = scenario_root(config, layout) / task
-    build_once(folder, str(MISSIONS_FILE), lambda build: _generate(config, layout, task, build))
+    mission = _mission(config, layout, task)
+    build_once(folder, str(MISSIONS_FILE), lambda build: _generate(layout, build, ego_missions=[mission]))
     return folder
 
 
-def _generate(config: IntersectionConfig, layout: IntersectionLayout, task: str, folder: Path) -> None:
+def traffic_specs(config: IntersectionConfig, layout: IntersectionLayout, k: int) -> list[str]:
+    """The route file of traffic variation ``k``, shared by the three tasks (none without traffic); the
+    variations are generated on first use (``duarouter`` for each: a few seconds for 50)."""
+    folder = scenario_root(config, layout) / "traffic"
+    build_once(folder, MAP_FILE, lambda build: _generate(layout, build, traffic=_variations(config, layout)))
+    path = folder / "build" / "traffic" / f"{flow_name(k)}.rou.xml"
+    return [str(path)] if path.is_file() else []
+
+
+def _generate(layout: IntersectionLayout, folder: Path, **parts: Any) -> None:
+    """A scenario of our junction and ``parts`` (sstudio's ``traffic``, ``ego_missions``) in ``folder``."""
     from smarts.sstudio import gen_scenario
     from smarts.sstudio import sstypes as t
 
     shutil.copyfile(network_file(layout), folder / MAP_FILE)
-    traffic = t.Traffic(flows=_flows(config, layout))
-    scenario = t.Scenario(
-        traffic={flow_name(k): traffic for k in range(config.smarts_flows)} if traffic.flows else None,
-        ego_missions=[_mission(config, layout, task)],
-    )
-    gen_scenario(scenario, output_dir=folder, seed=0)
+    gen_scenario(t.Scenario(**parts), output_dir=folder, seed=0)
 
 
 def flow_name(k: int) -> str:
@@ -91,10 +98,16 @@ def flow_name(k: int) -> str:
     return f"flow{k:03d}"
 
 
-def traffic_specs(folder: Path, k: int) -> list[str]:
-    """The route file of traffic variation ``k`` in a built scenario folder (none without traffic)."""
-    path = folder / "build" / "traffic" / f"{flow_name(k)}.rou.xml"
-    return [str(path)] if path.is_file() else []
+def _variations(config: IntersectionConfig, layout: IntersectionLayout) -> dict[str, Any] | None:
+    """``smarts_flows`` copies of our flows, whose departures duarouter draws with seeds 0, 1, ... (none
+    without traffic)."""
+    from smarts.sstudio import sstypes as t
+
+    flows = _flows(config, layout)
+    if not flows:
+        return None
+    traffic = t.Traffic(flows=flows)
+    return {flow_name(k): traffic for k in range(config.smarts_flows)}
 
 
 def _flows(config: IntersectionConfig, layout: IntersectionLayout) -> list[Any]:

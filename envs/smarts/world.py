@@ -221,7 +221,9 @@ class SmartsWorld(IntersectionWorld):
         """The task's scenario with flow ``k`` and the ego's mission from ``start`` to the task's exit."""
         folder = scenario_folder(self.config, self.layout, self.task)
         scenario = Scenario(
-            str(folder), traffic_specs=traffic_specs(folder, self.flow), log_dir=self._log_dir
+            str(folder),
+            traffic_specs=traffic_specs(self.config, self.layout, self.flow),
+            log_dir=self._log_dir,
         )
         goal_x, goal_y = to_sumo(self.task_goal[:2])
         goal = ExitGoal(
