@@ -228,7 +228,7 @@ def test_no_sumo_or_temporary_folder_is_left_after_an_exception_inside_step(monk
 def test_subproc_vec_env_steps_smarts_worlds():
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    venv = SubprocVecEnv([lambda: gym.make("GCCPPlanner-v0", **SMARTS) for _ in range(2)])
+    venv = SubprocVecEnv([lambda: gym.make("gccp_envs:GCCPPlanner-v0", **SMARTS) for _ in range(2)])
     try:
         venv.seed(0)
         venv.reset()
