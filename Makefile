@@ -3,7 +3,7 @@
 
 install:  ## CPU torch first, so a CPU-only machine pulls no CUDA wheels
 	python -m pip install "torch==2.13.0" || python -m pip install torch --index-url https://download.pytorch.org/whl/cpu
-	python -m pip install -e ".[test,sumo]"
+	python -m pip install -e ".[test,sumo,smarts]"
 
 lint: typecheck
 	ruff check sb3_gccp envs tests benchmarks

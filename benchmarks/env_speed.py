@@ -5,13 +5,18 @@ Ours is timed as MaskablePPO calls it: ``action_masks()`` and then ``step``, an 
 
 Run: python benchmarks/env_speed.py [--steps 3000] [--spawn-probability 0.06]
 Last line: ``ratio <ours/stock>`` (goal: at most 0.5). Ours is also timed on SUMO traffic (``traffic: sumo``,
-the ``sumo`` extra), in the line ``sumo_ratio <sumo/builtin>`` (goal: at most 1.5).
+the ``sumo`` extra), in the line ``sumo_ratio <sumo/builtin>`` (goal: at most 1.5), and, with the ``smarts``
+extra, in SMARTS (``simulator: smarts``): ``smarts_ratio <smarts/builtin>``, then where a SMARTS step goes and
+``smarts_observation_share <our observation / SMARTS's step>`` (goal: at most 0.2).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import time
+from importlib.util import find_spec
 
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers intersection-v2)
@@ -38,25 +43,62 @@ def median_step_ms(env: gym.Env, steps: int, seed: int, masks: bool = False) -> 
     return float(np.median(times) * 1e3)
 
 
-def print_sumo_speed(args: argparse.Namespace, blocks: int = 10) -> None:
-    """Time GCCPPlanner-v0 on our traffic and on SUMO's (``traffic: sumo``) as ours is timed above, in
-    alternating blocks of steps so that a change of load on a shared machine hits both alike; print the
-    medians over the blocks and their ratio."""
+def print_backend_speed(
+    args: argparse.Namespace, key: str, value: str, steps: int, blocks: int = 10
+) -> dict[str, gym.Env]:
+    """Time GCCPPlanner-v0 on our world and with config ``key=value`` (SUMO's traffic, SMARTS) as ours is
+    timed above, in alternating blocks of steps so that a change of load on a shared machine hits both
+    alike; print the medians over the blocks and their ratio, ``<value>_ratio``. Return the envs, open."""
     envs = {
-        name: gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability, traffic=name)
-        for name in ("builtin", "sumo")
+        name: gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability, **overrides)
+        for name, overrides in (("builtin", {}), (value, {key: value}))
     }
     times: dict[str, list[float]] = {name: [] for name in envs}
     for block in range(blocks):
         for name, env in envs.items():
             times[name].append(
-                median_step_ms(env, args.steps // blocks, args.seed + block, masks=not args.no_masks)
+                median_step_ms(env, steps // blocks, args.seed + block, masks=not args.no_masks)
             )
-    for env in envs.values():
-        env.close()
-    builtin, sumo = (float(np.median(times[name])) for name in envs)
-    print(f"GCCPPlanner-v0 builtin / sumo traffic, interleaved: median {builtin:.2f} / {sumo:.2f} ms/step")
-    print(f"sumo_ratio {sumo / builtin:.3f}")
+    builtin, other = (float(np.median(times[name])) for name in envs)
+    print(f"GCCPPlanner-v0 builtin / {value} {key}, interleaved: median {builtin:.2f} / {other:.2f} ms/step")
+    print(f"{value}_ratio {other / builtin:.3f}")
+    return envs
+
+
+def print_smarts_split(env: gym.Env, steps: int, seed: int) -> None:
+    """Where a SMARTS step goes, from cProfile over ``steps`` steps (``action_masks()`` and ``step``, not the
+    resets): SMARTS's own step, our observation building, our action mask, and the rest (our reward, info,
+    the ego's kinematics)."""
+    profile = cProfile.Profile()
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    for _ in range(steps):  # resets (SMARTS steps through the warm-up) are not profiled
+        profile.enable()
+        mask = env.unwrapped.action_masks()  # type: ignore[attr-defined]
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample(mask=mask.astype(np.int8)))
+        profile.disable()
+        if terminated or truncated:
+            env.reset()
+    stats = pstats.Stats(profile).stats  # type: ignore[attr-defined]
+    from smarts.core.smarts import SMARTS
+
+    from gccp_envs.observation import SceneObserver
+    from gccp_envs.planner_env import GCCPPlannerEnv
+
+    parts = {
+        "SMARTS.step": SMARTS.step,
+        "SceneObserver.observe": SceneObserver.observe,
+        "action_masks": GCCPPlannerEnv.action_masks,
+        "env.step": GCCPPlannerEnv.step,
+    }
+    total = {}
+    for label, function in parts.items():
+        code = function.__code__
+        total[label] = stats[(code.co_filename, code.co_firstlineno, code.co_name)][3]
+    whole = total["env.step"] + total["action_masks"]
+    shares = ", ".join(f"{label} {100 * total[label] / whole:.0f} %" for label in list(parts)[:3])
+    print(f"SMARTS step + mask under cProfile, {steps} steps: {shares} of {1e3 * whole / steps:.1f} ms/step")
+    print(f"smarts_observation_share {total['SceneObserver.observe'] / total['SMARTS.step']:.3f}")
 
 
 def main() -> None:
@@ -65,6 +107,7 @@ def main() -> None:
     parser.add_argument("--spawn-probability", type=float, default=IntersectionConfig().spawn_probability)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-masks", action="store_true", help="time ours without action_masks()")
+    parser.add_argument("--smarts-steps", type=int, default=1000, help="steps of the SMARTS timing")
     args = parser.parse_args()
     ours_env = gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability)
     stock_env = gym.make(
@@ -82,7 +125,13 @@ def main() -> None:
     with_masks = "" if args.no_masks else " (action_masks() + step)"
     print(f"GCCPPlanner-v0  median {ours:.2f} ms/step{with_masks}")
     print(f"intersection-v2 median {stock:.2f} ms/step")
-    print_sumo_speed(args)
+    for env in print_backend_speed(args, "traffic", "sumo", args.steps).values():
+        env.close()
+    if find_spec("smarts") is not None:
+        envs = print_backend_speed(args, "simulator", "smarts", args.smarts_steps)
+        print_smarts_split(envs["smarts"], args.smarts_steps, args.seed)
+        for env in envs.values():
+            env.close()
     print(f"ratio {ours / stock:.3f}")
 
 

@@ -11,7 +11,7 @@ import numpy as np
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.geometry import FloatArray
 from gccp_envs.observation import SceneObserver
-from gccp_envs.world import IntersectionWorld, StepOutcome
+from gccp_envs.world import StepOutcome, make_world
 
 Obs = dict[str, np.ndarray]
 
@@ -45,7 +45,7 @@ class IntersectionBaseEnv(gym.Env):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"unsupported render_mode {render_mode!r}: expected None or 'rgb_array'")
         self.render_mode = render_mode
-        self.world = IntersectionWorld(self.config)
+        self.world = make_world(self.config)
         self.observer = SceneObserver(self.world)
         self._subgoal: FloatArray | None = None
         self._renderer: Any = None
@@ -100,6 +100,6 @@ class IntersectionBaseEnv(gym.Env):
         return self._renderer.frame(self.world, **self._render_extras())
 
     def close(self) -> None:
-        """Release the renderer and the traffic (SUMO's simulation ends)."""
+        """Release the renderer and the simulation (SUMO's or SMARTS's ends)."""
         self._renderer = None
         self.world.close()

@@ -13,6 +13,7 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
+from gccp_envs.smarts import require_smarts_extra
 from gccp_envs.sumo import require_sumo_extra
 
 TASKS = ("left", "straight", "right")
@@ -23,6 +24,8 @@ DT = 0.1
 
 TRAFFIC_BACKENDS = ("builtin", "sumo")
 """Who drives the other vehicles (config ``traffic``)."""
+SIMULATORS = ("builtin", "smarts")
+"""Who simulates the world (config ``simulator``)."""
 
 
 def parse_tasks(text: str) -> list[str]:
@@ -116,6 +119,15 @@ class IntersectionConfig:
     """'random': ego starts on any lane of its arm (it may need a lane change); 'task': a task lane."""
     exit_distance: float = 20.0
     """Distance [m] past the junction box on the task's exit arm that counts as task success."""
+
+    # --- simulator -------------------------------------------------------------------------------
+    simulator: str = "builtin"
+    """Who simulates the world: 'builtin', ours (envs/world.py), or 'smarts', the paper's simulator (paper
+    IV) on the same junction, with SUMO's traffic, the ego moved by its RelativeTargetPose action and the
+    outcomes from its events (envs/smarts/, the ``smarts`` extra). With 'smarts' the key ``traffic`` is
+    not read: SMARTS's traffic is SUMO's, with the flow rates and speeds of the keys below."""
+    smarts_flows: int = 50
+    """Traffic variations per task scenario under SMARTS, one drawn per episode (paper IV: 50 flows)."""
 
     # --- traffic ---------------------------------------------------------------------------------
     traffic: str = "builtin"
@@ -296,6 +308,10 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError(f"unknown traffic {config.traffic!r}: expected one of {', '.join(TRAFFIC_BACKENDS)}")
     if config.traffic == "sumo":
         require_sumo_extra()
+    if config.simulator not in SIMULATORS:
+        raise ValueError(f"unknown simulator {config.simulator!r}: expected one of {', '.join(SIMULATORS)}")
+    if config.simulator == "smarts":
+        require_smarts_extra()
     if config.ego_lane not in ("random", "task"):
         raise ValueError(f"ego_lane must be 'random' or 'task', got {config.ego_lane!r}")
     positive_ints = (
@@ -310,6 +326,7 @@ def _validate(config: IntersectionConfig) -> None:
         "prediction_horizon",
         "max_vehicles",
         "mask_lookahead",
+        "smarts_flows",
     )
     for name in positive_ints:
         require_int(name, getattr(config, name))

@@ -29,6 +29,15 @@ def make_traffic(
     return Traffic(layout, config, rng)
 
 
+def make_world(config: IntersectionConfig) -> IntersectionWorld:
+    """The world of config ``simulator``: ours, or SMARTS's (imported only when chosen)."""
+    if config.simulator == "smarts":
+        from gccp_envs.smarts.world import SmartsWorld
+
+        return SmartsWorld(config)
+    return IntersectionWorld(config)
+
+
 @dataclass(frozen=True)
 class StepOutcome:
     """What happened to the ego in one step."""
@@ -68,7 +77,7 @@ class IntersectionWorld:
         # Long enough for the state's T_h + 1 poses and for a decision's future, read T_m steps later.
         self._hist_len = max(config.history_length + 1, config.decision_period) + 1
         self.rng = np.random.default_rng()
-        self.traffic = make_traffic(self.layout, config, self.rng)
+        self.traffic = self._make_traffic()
         self.task = "straight"
         self.ego = EgoState(0.0, 0.0, 0.0, 0.0)
         self.steps = 0
@@ -76,6 +85,9 @@ class IntersectionWorld:
         self._task_paths: list[int] = []
         self._candidates: FloatArray | None = None
         self._routes: tuple[list[int], FloatArray] | None = None
+
+    def _make_traffic(self) -> TrafficTable:
+        return make_traffic(self.layout, self.config, self.rng)
 
     # --- episode -------------------------------------------------------------------------------------
     def reset(self, rng: np.random.Generator, task: str | None = None) -> None:
@@ -86,17 +98,8 @@ class IntersectionWorld:
         """
         cfg = self.config
         self.rng = rng
-        task = task or cfg.task
-        if task == "mixed":
-            task = TASKS[int(rng.integers(len(TASKS)))]
-        if task not in TASKS:
-            raise ValueError(f"unknown task {task!r}: expected one of {', '.join(TASKS)}")
-        self.task = task
-        self.task_goal = self.layout.task_goal(task)
-        self._task_paths = self.layout.paths_from(EGO_ARM, turn=task)
+        self._begin_episode(task)
         self.traffic.reset(rng)
-        self._hist = np.zeros((self._hist_len, self.ego_slot + 1, 4))
-        self._hist_uid = np.full((self._hist_len, self.ego_slot + 1), -1, np.int64)
         warmup = round(cfg.warmup_time / DT)
         for step in range(-warmup, 0):
             self._spawn_traffic(None)
@@ -107,24 +110,46 @@ class IntersectionWorld:
         self.steps = 0
         self._place_ego()
         self._record()
-        self._backfill_ego_history()
+        self._backfill_history(np.array([self.ego_slot]))
         self._candidates = self._routes = None
 
-    def _backfill_ego_history(self) -> None:
-        """Give the new ego a past: it arrived at constant speed along its heading."""
-        ego = self.ego
+    def _begin_episode(self, task: str | None) -> None:
+        """Set the task (the config's if ``None``, drawn if 'mixed') and empty the pose history."""
+        task = task or self.config.task
+        if task == "mixed":
+            task = TASKS[int(self.rng.integers(len(TASKS)))]
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}: expected one of {', '.join(TASKS)}")
+        self.task = task
+        self.task_goal = self.layout.task_goal(task)
+        self._task_paths = self.layout.paths_from(EGO_ARM, turn=task)
+        self._hist = np.zeros((self._hist_len, self.ego_slot + 1, 4))
+        self._hist_uid = np.full((self._hist_len, self.ego_slot + 1), -1, np.int64)
+
+    def _backfill_history(self, slots: NDArray[np.int64]) -> None:
+        """Give vehicles just recorded a past: they arrived at constant speed along their heading."""
+        row = self.steps % self._hist_len
+        now, uids = self._hist[row, slots], self._hist_uid[row, slots]
         for k in range(1, self._hist_len):
-            row = -k % self._hist_len
-            back = ego.speed * k * DT
-            self._hist[row, self.ego_slot] = (
-                ego.x - back * np.cos(ego.heading),
-                ego.y - back * np.sin(ego.heading),
-                ego.heading,
-                ego.speed,
+            back = now[:, 3] * k * DT
+            past = self.steps - k
+            self._hist[past % self._hist_len, slots] = np.column_stack(
+                (now[:, 0] - back * np.cos(now[:, 2]), now[:, 1] - back * np.sin(now[:, 2]), now[:, 2:])
             )
-            self._hist_uid[row, self.ego_slot] = 0
+            self._hist_uid[past % self._hist_len, slots] = uids
 
     def _place_ego(self) -> None:
+        """Put the ego at its drawn start, with no other vehicle within 15 m of it."""
+        path, s, speed = self._draw_ego_start()
+        x, y, heading = self.layout.paths.pose_at(np.array(path), np.array(s))
+        traffic = self.traffic
+        idx = traffic.indices
+        traffic.remove(idx[np.hypot(traffic.pose[idx, 0] - x, traffic.pose[idx, 1] - y) < 15.0])
+        speed = self._start_speed(path, s, speed)
+        self.ego = EgoState(float(x), float(y), float(heading), speed)
+
+    def _draw_ego_start(self) -> tuple[int, float, float]:
+        """The ego's start: a lane path of its arm, an arc length on it and a speed."""
         cfg, layout, rng = self.config, self.layout, self.rng
         lanes = (
             range(layout.lanes)
@@ -134,17 +159,16 @@ class IntersectionWorld:
         lane = int(rng.choice(list(lanes)))
         path = layout.paths_from(EGO_ARM, lane=lane)[0]
         s = layout.stop_s - rng.uniform(*cfg.ego_start_distance)
-        x, y, heading = layout.paths.pose_at(np.array(path), np.array(s))
-        traffic = self.traffic
-        idx = traffic.indices
-        too_close = np.hypot(traffic.pose[idx, 0] - x, traffic.pose[idx, 1] - y) < 15.0
-        traffic.remove(idx[too_close])
+        return path, float(s), float(rng.uniform(*cfg.ego_start_speed))
+
+    def _start_speed(self, path: int, s: float, speed: float) -> float:
+        """``speed``, capped so that the ego can stop 4 m behind the vehicle ahead of it on ``path``."""
+        traffic, layout = self.traffic, self.layout
         idx = traffic.indices
         ahead_s, ahead_d = layout.paths.lookup(np.full(len(idx), path), traffic.pose[idx, :2])
         ahead = (np.abs(ahead_d) < VEHICLE_WIDTH + 0.5) & (ahead_s > s)
         gap = float(np.min(ahead_s[ahead] - s, initial=np.inf)) - VEHICLE_LENGTH
-        speed = min(rng.uniform(*cfg.ego_start_speed), np.sqrt(2.0 * cfg.deceleration * max(gap - 4.0, 0.0)))
-        self.ego = EgoState(float(x), float(y), float(heading), float(speed))
+        return float(min(speed, np.sqrt(2.0 * self.config.deceleration * max(gap - 4.0, 0.0))))
 
     def _spawn_traffic(self, ego: Obstacle | None) -> None:
         if self.rng.uniform() < self.config.spawn_probability:

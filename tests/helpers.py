@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +36,7 @@ def place_ego(world: IntersectionWorld, x: float, y: float, heading: float, spee
     world.ego = EgoState(float(x), float(y), float(heading), float(speed))
     forget_ego_caches(world)
     world._record()
-    world._backfill_ego_history()
+    world._backfill_history(np.array([world.ego_slot]))
 
 
 def place_ego_on_path(world: IntersectionWorld, path: int, s: float, speed: float) -> np.ndarray:
@@ -167,3 +168,17 @@ def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=600,
     )
+
+
+def sumo_children() -> list[int]:
+    """Ids of this process's child processes running a SUMO binary."""
+    children = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            command = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == os.getpid() and b"sumo" in command:
+            children.append(int(stat.parent.name))
+    return children

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import tempfile
-from pathlib import Path
 
 import gymnasium as gym
 import libsumo
 import numpy as np
 import pytest
+from helpers import sumo_children
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scenario import layout_for
@@ -22,20 +21,6 @@ from gccp_envs.traffic import Obstacle
 from sb3_gccp.cli import main
 
 SUMO = {"traffic": "sumo"}
-
-
-def sumo_children() -> list[int]:
-    """Ids of this process's child processes running a SUMO binary."""
-    children = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            command = (stat.parent / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if int(fields[1]) == os.getpid() and b"sumo" in command:
-            children.append(int(stat.parent.name))
-    return children
 
 
 @pytest.fixture(params=["libsumo", "traci"])

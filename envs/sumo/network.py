@@ -16,6 +16,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -140,31 +141,44 @@ def _sumo_version() -> str:
 
 
 def network_file(layout: IntersectionLayout) -> Path:
-    """The layout's SUMO network, built with netconvert on first use.
-
-    It is built in a temporary folder next to the cache and renamed into place, so concurrent workers
-    never read a half-written network; the temporary folder is removed whatever happens.
+    """The layout's SUMO network, built with netconvert on first use (see :func:`build_once`).
 
     :raises RuntimeError: netconvert's own message when it fails
     """
-    folder = cache_folder(layout)
-    if (folder / NETWORK_FILE).is_file():
-        return folder / NETWORK_FILE
+    return build_once(cache_folder(layout), NETWORK_FILE, lambda build: _write_network(layout, build))
+
+
+def build_once(folder: Path, marker: str, build: Callable[[Path], None]) -> Path:
+    """``folder / marker``, after ``build`` has filled ``folder`` if ``marker`` is not there yet.
+
+    ``build`` fills a temporary folder next to ``folder``, which is then renamed into place, so concurrent
+    workers never read a half-built folder; the temporary folder is removed whatever happens.
+
+    :param folder: the cache folder to fill
+    :param marker: the file, relative to ``folder``, whose presence means the folder is built
+    :param build: fills the folder it is given
+    """
+    if (folder / marker).is_file():
+        return folder / marker
     folder.parent.mkdir(parents=True, exist_ok=True)
-    build = Path(tempfile.mkdtemp(prefix=".build-", dir=folder.parent))
+    staging = Path(tempfile.mkdtemp(prefix=".build-", dir=folder.parent))
     try:
-        build.chmod(0o755)  # a shared cache: mkdtemp makes the folder private
-        for name, text in network_sources(layout).items():
-            (build / name).write_text(text)
-        _netconvert(build)
+        staging.chmod(0o755)  # a shared cache: mkdtemp makes the folder private
+        build(staging)
         try:
-            build.rename(folder)
+            staging.rename(folder)
         except OSError:
-            if not (folder / NETWORK_FILE).is_file():  # not another worker's identical network
+            if not (folder / marker).is_file():  # not another worker's identical build
                 raise
     finally:
-        shutil.rmtree(build, ignore_errors=True)
-    return folder / NETWORK_FILE
+        shutil.rmtree(staging, ignore_errors=True)
+    return folder / marker
+
+
+def _write_network(layout: IntersectionLayout, folder: Path) -> None:
+    for name, text in network_sources(layout).items():
+        (folder / name).write_text(text)
+    _netconvert(folder)
 
 
 def _netconvert(folder: Path) -> None:

@@ -13,7 +13,8 @@ import contextlib
 import subprocess
 import time
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from importlib.util import find_spec
 from typing import Any
 
@@ -29,6 +30,17 @@ def libsumo_free() -> bool:
 def _release_libsumo() -> None:
     global _libsumo_taken
     _libsumo_taken = False
+
+
+@contextmanager
+def closing_on_error(close: Callable[[], None]) -> Iterator[None]:
+    """Call ``close`` if the block raises, then raise on: an env may never be closed after an exception,
+    and no simulation may outlive it."""
+    try:
+        yield
+    except BaseException:
+        close()
+        raise
 
 
 class SumoSimulation:

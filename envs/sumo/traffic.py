@@ -20,8 +20,7 @@ path of its movement nearest to it (SUMO's drivers may change lanes) and ``s`` i
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -40,7 +39,7 @@ from gccp_envs.sumo.network import (
     sumo_lane_index,
     to_sumo,
 )
-from gccp_envs.sumo.simulation import SumoSimulation
+from gccp_envs.sumo.simulation import SumoSimulation, closing_on_error
 from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, TrafficTable
 
 EGO_ID = "ego"
@@ -126,15 +125,6 @@ class SumoTraffic(TrafficTable):
         api.vehicletype.setLength(VEHICLE_TYPE, VEHICLE_LENGTH)
         api.vehicletype.setWidth(VEHICLE_TYPE, VEHICLE_WIDTH)
 
-    @contextmanager
-    def _ending_sumo_on_error(self) -> Iterator[None]:
-        """Leave no SUMO behind when a call fails: the env may never be closed after an exception."""
-        try:
-            yield
-        except BaseException:
-            self.close()
-            raise
-
     # --- spawning ------------------------------------------------------------------------------------
     def spawn(self, path: int, s: float, ego: Obstacle | None = None, speed: float | None = None) -> None:
         """Ask SUMO for a vehicle on ``path`` (an approach lane) with its centre at arc length ``s``.
@@ -150,7 +140,7 @@ class SumoTraffic(TrafficTable):
         move = self.layout.movements[path]
         name = str(self._next_uid)
         self._next_uid += 1
-        with self._ending_sumo_on_error():
+        with closing_on_error(self.close):
             vehicle = self.sumo.api.vehicle
             vehicle.add(
                 name,
@@ -177,7 +167,7 @@ class SumoTraffic(TrafficTable):
         slots = np.atleast_1d(slots)
         if not len(slots):
             return
-        with self._ending_sumo_on_error():
+        with closing_on_error(self.close):
             vehicle = self.sumo.api.vehicle
             for slot in slots:
                 name = self._vehicle_id[slot]
@@ -189,7 +179,7 @@ class SumoTraffic(TrafficTable):
     # --- one step ------------------------------------------------------------------------------------
     def step(self, ego: Obstacle | None = None) -> None:
         """Place the ego, advance SUMO by one 0.1 s step and read every vehicle back."""
-        with self._ending_sumo_on_error():
+        with closing_on_error(self.close):
             api = self.sumo.api
             if ego is not None:
                 self._place_ego(api, ego)
@@ -212,7 +202,7 @@ class SumoTraffic(TrafficTable):
         ego_hit = super().detect_crashes(ego)
         newly = np.flatnonzero(self.crashed & ~before)
         if len(newly):
-            with self._ending_sumo_on_error():
+            with closing_on_error(self.close):
                 vehicle = self.sumo.api.vehicle
                 for slot in newly:
                     vehicle.setSpeedMode(self._vehicle_id[slot], 0)  # stop at once, whatever the deceleration

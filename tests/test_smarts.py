@@ -1,0 +1,238 @@
+"""The SMARTS simulator (``simulator: smarts``): scenarios, episodes read as ours, fixes, cleanup."""
+
+from __future__ import annotations
+
+import types
+from importlib.util import find_spec
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from helpers import sumo_children
+
+import gccp_envs.smarts
+from gccp_envs.config import TASKS, IntersectionConfig
+from gccp_envs.scenario import layout_for
+from gccp_envs.smarts.fixes import (
+    apply_fixes,
+    fix_numpy_product,
+    fix_via_sort,
+    product_needs_fix,
+    via_sort_needs_fix,
+)
+from gccp_envs.smarts.scenario import MAP_FILE, MISSIONS_FILE, scenario_folder, traffic_specs
+from gccp_envs.sumo.network import CACHE_VARIABLE, network_file
+
+needs_smarts = pytest.mark.skipif(
+    find_spec("smarts") is None,
+    reason="SMARTS is not installed (the smarts extra: pip install -e '.[smarts]')",
+)
+
+SMARTS = {"simulator": "smarts"}
+OUTCOMES = ("is_success", "crashed", "offroad", "wrong_exit", "timeout")
+
+
+def departures(route_file: str) -> list[tuple[str, str]]:
+    """(route, departure time) of every vehicle of a SUMO route file."""
+    import xml.etree.ElementTree as ET
+
+    return [(v.get("route", ""), v.get("depart", "")) for v in ET.parse(route_file).getroot().iter("vehicle")]
+
+
+def test_choosing_smarts_without_the_extra_fails_in_one_line_naming_it(monkeypatch):
+    monkeypatch.setattr(gccp_envs.smarts, "find_spec", lambda name: None if name == "smarts" else object())
+    with pytest.raises(
+        ValueError, match=r"^simulator 'smarts' needs the smarts extra \(smarts not installed\)"
+    ):
+        IntersectionConfig(simulator="smarts")
+    with pytest.raises(ValueError, match="unknown simulator 'carla'"):
+        IntersectionConfig(simulator="carla")
+
+
+@needs_smarts
+def test_the_scenarios_build_from_scratch_with_flow_k_the_same_every_build(tmp_path, monkeypatch):
+    config = IntersectionConfig(smarts_flows=2)
+    layout = layout_for(config)
+    built = {}
+    for cache in ("first", "second"):
+        monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path / cache / "sumo"))
+        for task in TASKS:
+            folder = scenario_folder(config, layout, task)
+            assert (folder / MAP_FILE).read_bytes() == network_file(layout).read_bytes()
+            assert (folder / MISSIONS_FILE).is_file()
+        built[cache] = [departures(traffic_specs(config, layout, k)[0]) for k in range(2)]
+        assert not list((tmp_path / cache).rglob(".build-*"))  # no half-built folder is left
+    flow0, flow1 = built["first"]
+    assert len(flow0) > 10 and flow0 != flow1  # two different flows ...
+    assert built["second"] == built["first"]  # ... each the same at every build
+
+
+@needs_smarts
+def test_the_six_actions_move_the_ego_as_in_our_world():
+    from gccp_envs.smarts.world import SmartsWorld
+
+    world = SmartsWorld(IntersectionConfig(task="right", spawn_probability=0.0))
+    try:
+        world.reset(np.random.default_rng(0))
+        for action in (1, 1, 2, 3, 4, 5, 0, 4):
+            expected = world.motion.step(world.ego, action)
+            world.step(action)
+            assert world.ego.as_array() == pytest.approx(expected.as_array(), abs=1e-6)
+    finally:
+        world.close()
+
+
+@needs_smarts
+def test_an_episode_steps_and_ends_with_exactly_one_outcome():
+    env = gym.make("GCCPPlanner-v0", task="straight", **SMARTS)
+    try:
+        env.reset(seed=3)
+        env.action_space.seed(3)
+        for _ in range(400):
+            mask = env.unwrapped.action_masks()  # type: ignore[attr-defined]
+            _, _, terminated, truncated, info = env.step(env.action_space.sample(mask.astype(np.int8)))
+            if terminated or truncated:
+                break
+        assert terminated or truncated
+        assert sum(bool(info[key]) for key in OUTCOMES) == 1
+    finally:
+        env.close()
+
+
+@needs_smarts
+@pytest.mark.parametrize("env_id", ["GCCPPlanner-v0", "GCCPDecider-v0", "GCCPFlat-v0"])
+def test_the_envs_have_the_builtin_spaces_and_info_keys(env_id):
+    envs = [gym.make(env_id, task="left"), gym.make(env_id, task="left", **SMARTS)]
+    try:
+        steps = []
+        for env in envs:
+            obs, _ = env.reset(seed=0)
+            assert env.observation_space.contains(obs)
+            steps.append(env.step(env.action_space.sample())[-1])
+        assert envs[0].observation_space == envs[1].observation_space
+        assert steps[0].keys() == steps[1].keys()
+    finally:
+        for env in envs:
+            env.close()
+
+
+@needs_smarts
+def test_the_observation_of_a_standing_ego_and_a_known_neighbour_is_in_our_frames():
+    env = gym.make("GCCPPlanner-v0", task="left", **SMARTS)
+    try:
+        env.reset(seed=5)
+        world = env.unwrapped.world  # type: ignore[attr-defined]
+        for _ in range(25):  # brake to a stand
+            obs, _, terminated, truncated, _ = env.step(0)
+            assert not (terminated or truncated)
+        assert world.ego.speed == 0.0
+        # The ego stands at the origin of its frame, facing along x, in its last two history vectors.
+        assert obs["history"][0, -1, :8] == pytest.approx(np.zeros(8), abs=1e-4)
+        # The nearest vehicle SMARTS reports is the first neighbour, where SMARTS says it is.
+        ego = world.observation.ego_vehicle_state
+        reported = world.observation.neighborhood_vehicle_states
+        assert reported, "the flow of seed 5 has a vehicle near the ego"
+        position = np.asarray(ego.position[:2], float)
+        nearest = min(reported, key=lambda v: np.hypot(*(np.asarray(v.position[:2]) - position)))
+        offset = np.asarray(nearest.position[:2], float) - position
+        heading = float(ego.heading)
+        forward, right = (-np.sin(heading), np.cos(heading)), (np.cos(heading), np.sin(heading))
+        expected = (
+            np.dot(offset, forward),
+            np.dot(offset, right),
+            (float(heading) - float(nearest.heading) + np.pi) % (2 * np.pi) - np.pi,
+            nearest.speed,
+        )
+        assert obs["history"][1, -1, 4:8] == pytest.approx(expected, abs=1e-3)
+        assert obs["history_mask"][1, -1] == 1.0
+    finally:
+        env.close()
+
+
+class _BrokenSort:
+    def __call__(self, points):
+        points.sort(key=lambda dist, _: dist)
+        return points
+
+
+class _GoodSort:
+    def __call__(self, points):
+        points.sort(key=lambda point: point[0])
+        return points
+
+
+def test_the_via_sort_fix_is_applied_only_while_needed():
+    assert via_sort_needs_fix(_BrokenSort.__call__) and not via_sort_needs_fix(_GoodSort.__call__)
+    with pytest.raises(TypeError):
+        _BrokenSort()([(2.0, "b"), (1.0, "a")])
+    assert fix_via_sort(_BrokenSort) and not fix_via_sort(_BrokenSort)
+    assert _BrokenSort()([(2.0, "b"), (1.0, "a")]) == [(1.0, "a"), (2.0, "b")]
+    assert not fix_via_sort(_GoodSort)
+
+
+def test_the_numpy_product_fix_is_applied_only_while_needed():
+    def largest(shapes):
+        return max(shapes, key=lambda shape: np.product(shape))  # type: ignore[attr-defined]
+
+    module = types.ModuleType("recorder")
+    module.np = np  # type: ignore[attr-defined]
+    module.largest = largest  # type: ignore[attr-defined]
+    unused = types.ModuleType("unused")
+    unused.np = np  # type: ignore[attr-defined]
+    assert product_needs_fix(module) and not product_needs_fix(unused)
+    assert fix_numpy_product(module) and not fix_numpy_product(module) and not fix_numpy_product(unused)
+    assert module.np.product((2, 3)) == 6 and not hasattr(np, "product")  # numpy itself is untouched
+
+
+@needs_smarts
+def test_the_installed_smarts_is_fixed_once():
+    from smarts.core.sensor import ViaSensor
+
+    apply_fixes()
+    assert not via_sort_needs_fix(ViaSensor.__call__)
+    assert apply_fixes() == {"via_sort": False, "numpy_product": False}
+
+
+@needs_smarts
+def test_no_sumo_or_temporary_folder_is_left_after_close():
+    env = gym.make("GCCPPlanner-v0", task="left", **SMARTS)
+    env.reset(seed=0)
+    env.step(1)
+    log_dir = Path(env.unwrapped.world._log_dir)  # type: ignore[attr-defined]
+    assert sumo_children() and log_dir.is_dir()
+    env.close()
+    assert sumo_children() == [] and not log_dir.exists()
+
+
+@needs_smarts
+def test_no_sumo_or_temporary_folder_is_left_after_an_exception_inside_step(monkeypatch):
+    env = gym.make("GCCPPlanner-v0", task="left", **SMARTS)
+    env.reset(seed=0)
+    world = env.unwrapped.world  # type: ignore[attr-defined]
+    log_dir = Path(world._log_dir)
+
+    def fail(actions):
+        raise RuntimeError("inside SMARTS's step")
+
+    monkeypatch.setattr(world._smarts, "step", fail)
+    with pytest.raises(RuntimeError, match="inside SMARTS's step"):
+        env.step(1)
+    assert sumo_children() == [] and not log_dir.exists()
+    env.reset(seed=1)  # the world starts a new SMARTS
+    env.close()
+
+
+@needs_smarts
+@pytest.mark.slow
+def test_subproc_vec_env_steps_smarts_worlds():
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    venv = SubprocVecEnv([lambda: gym.make("gccp_envs:GCCPPlanner-v0", **SMARTS) for _ in range(2)])
+    try:
+        venv.seed(0)
+        venv.reset()
+        for _ in range(5):
+            venv.step(np.ones(2, np.int64))
+    finally:
+        venv.close()
