@@ -14,7 +14,7 @@ from sb3_gccp.reproduce.launchers import JobFailed, run_jobs
 from sb3_gccp.reproduce.plan import ReproduceRequest, prepare
 
 HIERARCHY = ("ours", "with_cv", "without_gccp", "without_goal")
-BASELINES = ("dqn", "ppo", "sac_discrete")
+BASELINES = ("dqn", "ppo", "sac_discrete", "dqn_paper", "ppo_paper", "sac_discrete_paper")
 FAST = ("--planner", "scripted", "--no-progress")
 """No planner job: the runs of these tests take seconds."""
 
@@ -23,12 +23,12 @@ def test_a_seeds_planner_comes_before_its_hierarchy_variants_and_the_baselines_w
     request = ReproduceRequest(preset="quick", seeds=(0, 1), out=tmp_path / "out", log_folder=tmp_path)
     jobs = job_graph(prepare(request))
     keys = [job.key for job in jobs]
-    assert keys[:9] == [
+    assert keys[:12] == [
         "seed0/planner",
         *(f"seed0/{name}" for name in (*HIERARCHY, *BASELINES)),
         "seed0/predictor_errors",
     ]
-    assert len(keys) == 18 and len(set(keys)) == 18
+    assert len(keys) == 24 and len(set(keys)) == 24
     needs = {job.key: job.needs for job in jobs}
     for seed in (0, 1):
         assert needs[f"seed{seed}/planner"] == ()
@@ -141,6 +141,7 @@ def run_files(root: Path) -> dict[Path, int]:
     return {path: path.stat().st_mtime_ns for path in sorted(root.rglob("*")) if path.is_file()}
 
 
+@pytest.mark.slow  # reproduce end to end, several times (about 40 s each)
 def test_two_jobs_at_once_write_the_tables_and_each_run_its_log(two_at_once):
     folder, result = two_at_once
     assert result.returncode == 0, result.stderr
@@ -156,6 +157,7 @@ def test_two_jobs_at_once_write_the_tables_and_each_run_its_log(two_at_once):
     assert "\n| ours | " in (folder / "results" / "table2.md").read_text()
 
 
+@pytest.mark.slow  # reproduce end to end, several times (about 40 s each)
 def test_a_second_reproduce_reruns_no_finished_run(two_at_once):
     folder, first = two_at_once
     assert first.returncode == 0, first.stderr
@@ -173,6 +175,7 @@ def test_a_second_reproduce_reruns_no_finished_run(two_at_once):
     assert (root / "seed0" / "sac_discrete" / "training.json").is_file()
 
 
+@pytest.mark.slow  # reproduce end to end, several times (about 40 s each)
 def test_collect_builds_the_tables_from_run_folders_alone(two_at_once, tmp_path):
     folder, first = two_at_once
     assert first.returncode == 0, first.stderr

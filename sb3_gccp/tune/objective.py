@@ -38,7 +38,7 @@ from sb3_gccp.hyperparams import (
     resolve_class,
     resolve_policy_kwargs,
 )
-from sb3_gccp.training.baselines import BASELINES, baseline_algorithm, max_episode_steps
+from sb3_gccp.training.baselines import BASELINES, MASKS_KEY, baseline_algorithm, max_episode_steps
 from sb3_gccp.training.episodes import read_episodes, rolling_rate
 from sb3_gccp.tune.space import SearchSpace, SearchSpaceError
 
@@ -61,8 +61,9 @@ class TuneMethod:
 
     @property
     def algorithm(self) -> type[BaseAlgorithm]:
-        """The algorithm class (imported when first used)."""
-        return MaskablePPO if self.name == "decider" else baseline_algorithm(self.name)
+        """The algorithm class (imported when first used): a baseline's masked one, as the shipped
+        entries train (``action_masks: true``; the unmasked classes take the same hyperparameters)."""
+        return MaskablePPO if self.name == "decider" else baseline_algorithm(self.name, masked=True)
 
     def check_key(self, name: str, entry: Mapping[str, Any]) -> None:
         """Reject a dotted zoo key this method does not take, or one a study must not sample.
@@ -131,7 +132,7 @@ class TuneMethod:
 
 
 TUNE_METHODS = {
-    **{name: TuneMethod(name, FLAT_ENV_ID, f"{name}.yml") for name in BASELINES},
+    **{name: TuneMethod(name, FLAT_ENV_ID, f"{name}.yml", own_keys=(MASKS_KEY,)) for name in BASELINES},
     "decider": TuneMethod("decider", DECIDER_ENV_ID, "ppo_mask.yml", own_keys=("gccp",)),
 }
 """The methods ``sb3_gccp tune --method`` takes."""
