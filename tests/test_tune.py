@@ -73,7 +73,7 @@ def stored(out: Path, name: str = "ppo") -> optuna.Study:
         ({"hyperparams": {}}, "hyperparams must be a non-empty map of zoo keys"),
         (
             {"hyperparams": {"lerning_rate": {"type": "float", "low": 0.1, "high": 1}}},
-            "lerning_rate: PPO takes no hyperparameter 'lerning_rate' (did you mean 'learning_rate'?)",
+            "lerning_rate: MaskablePPO takes no hyperparameter 'lerning_rate' (did you mean 'learning_rate'?)",
         ),
         (
             {"hyperparams": {"gamma": {"type": "float", "low": 0.99, "high": 0.9}}},
@@ -94,7 +94,7 @@ def stored(out: Path, name: str = "ppo") -> optuna.Study:
         ),
         (
             {"hyperparams": {"n_epochs": {"type": "float", "low": 1, "high": 4}}},
-            "n_epochs: PPO takes an integer (default 10), the space samples floats: use type int",
+            "n_epochs: MaskablePPO takes an integer (default 10), the space samples floats: use type int",
         ),
         (
             {"hyperparams": {"clip_range": {"type": "categorical", "choices": [0.1], "low": 0}}},
@@ -106,7 +106,7 @@ def stored(out: Path, name: str = "ppo") -> optuna.Study:
         ),
         (
             {"hyperparams": {"policy_kwargs.depth": {"type": "int", "low": 1, "high": 3}}},
-            "policy_kwargs.depth: MultiInputActorCriticPolicy takes no policy_kwargs key 'depth'",
+            "policy_kwargs.depth: MaskableMultiInputActorCriticPolicy takes no policy_kwargs key 'depth'",
         ),
         (
             {"hyperparams": {"n_timesteps": {"type": "int", "low": 1, "high": 3}}},
