@@ -73,7 +73,8 @@ def stored(out: Path, name: str = "ppo") -> optuna.Study:
         ({"hyperparams": {}}, "hyperparams must be a non-empty map of zoo keys"),
         (
             {"hyperparams": {"lerning_rate": {"type": "float", "low": 0.1, "high": 1}}},
-            "lerning_rate: MaskablePPO takes no hyperparameter 'lerning_rate' (did you mean 'learning_rate'?)",
+            "lerning_rate: MaskablePPO takes no hyperparameter 'lerning_rate' "
+            "(did you mean 'learning_rate'?)",
         ),
         (
             {"hyperparams": {"gamma": {"type": "float", "low": 0.99, "high": 0.9}}},
