@@ -14,7 +14,7 @@ from sb3_contrib import MaskablePPO
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.frozen import load_decider, load_planner
 from sb3_gccp.hierarchy import load_hierarchy
-from sb3_gccp.training.baselines import baseline_algorithm, load_baseline
+from sb3_gccp.training.baselines import baseline_algorithm, load_baseline, read_baseline_spec
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
 HIERARCHIES = sorted(path.parent for path in PRETRAINED.rglob("hierarchy.yml"))
@@ -40,11 +40,14 @@ def test_every_shipped_hierarchy_loads_the_policies_sb3_loads(folder):
 @pytest.mark.parametrize("folder", BASELINES, ids=lambda p: p.name)
 def test_every_shipped_baseline_acts_as_sb3s_load_does(folder):
     env, policy, name = load_baseline(folder)
-    model = baseline_algorithm(name).load(folder / "model.zip", device="cpu")
+    _, masked, _ = read_baseline_spec(folder)
+    model = baseline_algorithm(name, masked).load(folder / "model.zip", device="cpu")
     obs, _ = env.reset(seed=0)
     for _ in range(10):
-        action, _ = model.predict(obs, deterministic=True)
-        assert policy(obs, env.unwrapped.action_masks()) == int(action)
+        masks = env.unwrapped.action_masks()
+        extra = {"action_masks": masks} if isinstance(model, MaskablePPO) else {}
+        action, _ = model.predict(obs, deterministic=True, **extra)
+        assert policy(obs, masks) == int(action)
         obs, *_ = env.step(int(action))
 
 
