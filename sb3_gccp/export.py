@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import torch as th
-import yaml
 
 from sb3_gccp.constants import (
     ARGS_FILE,
@@ -50,7 +49,7 @@ from sb3_gccp.constants import (
 )
 from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.safe_loading import first_line
-from sb3_gccp.training.baselines import MASKS_KEY, load_baseline, read_baseline_spec
+from sb3_gccp.training.baselines import baseline_spec, load_baseline, read_baseline_spec
 
 RECORDS = (
     COMMAND_FILE,
@@ -146,8 +145,7 @@ def _baseline_files(run_dir: Path, trusted: bool) -> dict[str, Path | str]:
     model loaded first as ``evaluate`` would."""
     name, masked, model = read_baseline_spec(run_dir)
     load_baseline(run_dir, trusted=trusted)
-    spec = {"algorithm": name, MASKS_KEY: masked, "model": MODEL_FILE}
-    return {MODEL_FILE: model, BASELINE_FILE: yaml.safe_dump(spec, sort_keys=False)}
+    return {MODEL_FILE: model, BASELINE_FILE: baseline_spec(name, masked)}
 
 
 def _hierarchy_files(

@@ -245,8 +245,12 @@ def has_checkpoint(run_dir: Path) -> bool:
 def write_baseline_spec(run_dir: Path, name: str, masked: bool) -> None:
     """Name the algorithm, its action masks and the model of a baseline run folder in its
     ``baseline.yml``."""
-    spec = {"algorithm": name, MASKS_KEY: masked, "model": MODEL_FILE}
-    (run_dir / BASELINE_FILE).write_text(yaml.safe_dump(spec, sort_keys=False))
+    (run_dir / BASELINE_FILE).write_text(baseline_spec(name, masked))
+
+
+def baseline_spec(name: str, masked: bool) -> str:
+    """The text of a ``baseline.yml``: the algorithm, its action masks and the model file."""
+    return yaml.safe_dump({"algorithm": name, MASKS_KEY: masked, "model": MODEL_FILE}, sort_keys=False)
 
 
 def read_baseline_spec(run_dir: Path) -> tuple[str, bool, Path]:
