@@ -9,6 +9,11 @@
    not leave the road. A decision-maker can only yield with a planner that stops.
 3. The planner under the scripted decision-maker (always the farthest candidate) in ``GCCPDecider-v0``
    on roads without traffic: the share of episodes that complete their task.
+4. Restarting: the same, but at a random point of the route (after 0 to 4 decisions) the decision-maker
+   holds (the nearest candidate) until the ego stands, then sends it to the farthest candidate again, as a
+   decision-maker does after yielding: the share of those stops after which the ego drives off (moves
+   1 m within 3 s) and the share that then complete the task. A planner that stands still for a far
+   subgoal stalls the hierarchy until the time limit (``restart_rate``).
 
 With ``--oracle``, part 1 also prints ``oracle_reach``: the share of the drawn subgoals that some
 forward path within the ego's turn radius and driving range reaches (Dubins paths; road edge and
@@ -163,6 +168,55 @@ def stopping(planner: Planner, episodes: int, seed: int, steps: int = 40) -> flo
     return stopped / (len(TASKS) * episodes)
 
 
+def restarting(
+    planner: Planner, episodes: int, seed: int, hold_decisions: int = 5, restart_decisions: int = 3
+) -> dict[str, float]:
+    """Stop the ego by hold subgoals at a random point of its route on an empty road, then send it to the
+    farthest candidate: how often it drives off and completes. Episodes that end before the hold, or
+    whose ego does not stand within ``hold_decisions`` decisions, are counted apart."""
+    env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
+    farthest = FarthestSubgoalDecider()
+    rng = np.random.default_rng(seed)
+    stops = moved = completed = not_stopped = 0
+    for task in TASKS:
+        for k in range(episodes):
+            obs, _ = env.reset(seed=seed + k, options={"task": task})
+            ended, world = False, env.world
+            for _ in range(int(rng.integers(5))):
+                obs, _, terminated, truncated, _ = env.step(farthest(obs, env.action_masks()))
+                if terminated or truncated:
+                    ended = True
+                    break
+            for _ in range(hold_decisions):
+                if ended or world.ego.speed < 0.1:
+                    break
+                nearest = int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))
+                obs, _, terminated, truncated, _ = env.step(nearest)
+                ended = terminated or truncated
+            if ended:
+                continue
+            if world.ego.speed >= 0.1:
+                not_stopped += 1
+                continue
+            stops += 1
+            start = np.array([world.ego.x, world.ego.y])
+            drove_off = False
+            for decision in range(10_000):
+                obs, _, terminated, truncated, info = env.step(farthest(obs, env.action_masks()))
+                if decision < restart_decisions:
+                    drove_off |= bool(np.hypot(world.ego.x - start[0], world.ego.y - start[1]) >= 1.0)
+                if terminated or truncated:
+                    break
+            moved += drove_off or bool(info["is_success"])
+            completed += bool(info["is_success"])
+    return {
+        "restart_rate": moved / max(stops, 1),
+        "completion_after_stop": completed / max(stops, 1),
+        "stops": stops,
+        "not_stopped": not_stopped,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="the planner's SB3 .zip, 'scripted' or 'search'")
@@ -183,6 +237,7 @@ def main() -> None:
     )
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)
+    restart = restarting(planner, args.episodes, args.seed)
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
@@ -207,6 +262,11 @@ def main() -> None:
         )
     print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
     print(f"stop_rate {stop_rate:.3f} (hold subgoals only for 4 s, empty road)")
+    print(
+        f"restart_rate {restart['restart_rate']:.3f} over {restart['stops']} stops along the route (drove off "
+        f"within 3 s when sent on, empty road); completion after the stop {restart['completion_after_stop']:.3f}; "
+        f"{restart['not_stopped']} holds did not stop"
+    )
     for task in TASKS:
         rows = [r for r in results if r.task == task]
         print(f"  {task:<9} completion {sum(r.success for r in rows) / len(rows):.3f} (empty road)")
