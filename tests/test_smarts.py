@@ -15,6 +15,7 @@ import gccp_envs.smarts
 from gccp_envs.config import TASKS, IntersectionConfig
 from gccp_envs.scenario import layout_for
 from gccp_envs.smarts.fixes import (
+    MOVE_TO_XY_WARNING,
     apply_fixes,
     fix_numpy_product,
     fix_via_sort,
@@ -192,6 +193,18 @@ def test_the_installed_smarts_is_fixed_once():
     apply_fixes()
     assert not via_sort_needs_fix(ViaSensor.__call__)
     assert apply_fixes() == {"via_sort": False, "numpy_product": False}
+
+
+@needs_smarts
+def test_only_the_move_to_xy_warning_is_silenced():
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        apply_fixes()
+        warnings.warn(f"{MOVE_TO_XY_WARNING}, use laneIndex instead.", UserWarning, stacklevel=1)
+        warnings.warn("another warning", UserWarning, stacklevel=1)
+    assert [str(w.message) for w in caught] == ["another warning"]
 
 
 @needs_smarts

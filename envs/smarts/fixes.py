@@ -6,14 +6,23 @@
 - ``smarts.env.utils.record`` (the GIF recorder) calls ``np.product``, gone in numpy 2. The fix gives that
   module (only it) a numpy whose ``product`` is ``prod``; numpy itself is left alone. The module imports
   OpenCV, which the extras do not install: without it the module cannot load and needs no fix.
+
+SMARTS also calls TraCI's ``moveToXY`` with ``lane=``, which SUMO 1.28 has renamed: a ``UserWarning`` per
+call (every step of every SUMO vehicle it places). It does what SMARTS means, so that one warning is
+silenced (``MOVE_TO_XY_WARNING``); every other warning is left as it is.
 """
 
 from __future__ import annotations
 
 import types
+import warnings
 from typing import Any
 
 import numpy as np
+
+
+MOVE_TO_XY_WARNING = "Use of deprecated parameter lane in function moveToXY"
+"""Start of the warning TraCI gives for SMARTS's ``moveToXY(..., lane=...)``."""
 
 
 def _sort_key_by_distance(point: Any) -> Any:
@@ -88,9 +97,11 @@ def fix_numpy_product(module: types.ModuleType) -> bool:
 
 
 def apply_fixes() -> dict[str, bool]:
-    """Apply each fix still needed by the installed SMARTS; return which were applied (by name)."""
+    """Apply each fix still needed by the installed SMARTS; return which were applied (by name). Also
+    silence the ``moveToXY`` warning (``MOVE_TO_XY_WARNING``)."""
     from smarts.core.sensor import ViaSensor
 
+    warnings.filterwarnings("ignore", message=MOVE_TO_XY_WARNING, category=UserWarning)
     try:
         from smarts.env.utils import record
     except ImportError:  # it needs OpenCV, which no extra of SMARTS installs: then nothing can call it
