@@ -43,6 +43,7 @@ from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, check_predictor_w
 from sb3_gccp.gccp.settings import CHECK_KEYS, LEARNED, PREDICTORS, GCCPCheck
 from sb3_gccp.hyperparams import read_yaml_mapping
 from sb3_gccp.safe_loading import file_in_folder
+from sb3_gccp.training.checkpoints import write_atomically
 
 OVERRIDES = "overrides"
 """The ``hierarchy.yml`` section of settings the decider was not trained with: ``world`` and ``mask``."""
@@ -178,9 +179,10 @@ class Hierarchy:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     def write(self) -> Path:
-        """Write ``hierarchy.yml`` into the hierarchy's folder; return the file."""
+        """Write ``hierarchy.yml`` into the hierarchy's folder (whole or not at all); return the file."""
         path = self.folder / HIERARCHY_FILE
-        path.write_text(self.to_yaml())
+        text = self.to_yaml()
+        write_atomically(path, lambda temporary: temporary.write_text(text))
         return path
 
     # --- the settings it runs with -------------------------------------------------------------

@@ -40,6 +40,23 @@ def test_a_hierarchy_written_reads_back_the_same(tmp_path):
     assert read.predictor_weights == tmp_path / "predictor.pt" and read.decider == tmp_path / "decider.zip"
 
 
+def test_a_write_that_fails_leaves_the_file_before_it(tmp_path, monkeypatch):
+    import sb3_gccp.training.checkpoints as checkpoints
+
+    (tmp_path / "decider.zip").write_bytes(b"not read here")
+    hierarchy = Hierarchy(tmp_path, planner_file="scripted", predictor="none", trained_world={"duration": 20.0})
+    before = hierarchy.write().read_text()
+    changed = Hierarchy(tmp_path, planner_file="scripted", predictor="none", trained_world={"duration": 25.0})
+
+    def fail(source, target):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(checkpoints.os, "replace", fail)
+    with pytest.raises(OSError):
+        changed.write()
+    assert (tmp_path / "hierarchy.yml").read_text() == before
+
+
 def test_overrides_are_written_apart_from_what_was_trained(tmp_path):
     (tmp_path / "decider.zip").write_bytes(b"not read here")
     trained = Hierarchy(tmp_path, planner_file="scripted", predictor="cv", trained_world={"duration": 20.0})
