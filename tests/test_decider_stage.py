@@ -125,6 +125,11 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
             ["train", "--stage", "decider", "--planner", "scripted", "--set", "nonsense=1"],
             "unknown intersection config key(s): 'nonsense'",
         ),
+        (
+            ["train", "--stage", "decider", "--planner", "scripted", "--gccp", "predictor=bogus"],
+            "gccp.predictor must be one of learned, no_goal, cv, none, got 'bogus'",
+        ),
+        (["train", "--stage", "planner", "--gccp", "predictor=none"], "--gccp sets the decider's gccp map"),
         (["evaluate", "--model", "nowhere"], "model not found: nowhere"),
         (["evaluate", "--model", "."], "no hierarchy.yml in ."),
         (["evaluate", "--model", ".", "--episodes-per-task", "0"], "--episodes-per-task must be at least 1"),
@@ -162,7 +167,7 @@ def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path
 def test_decider_stage_with_the_scripted_planner(tmp_path):
     decider = yaml.safe_load(yaml.safe_dump(TINY_DECIDER["GCCPDecider-v0"]))
     decider.update(n_envs=1)
-    decider["gccp"].update(n_episodes=1, predictor="cv")
+    decider["gccp"].update(n_episodes=1, predictor="learned")
     config = tmp_path / "tiny.yml"
     config.write_text(yaml.safe_dump({"GCCPDecider-v0": decider}))
     args = (
@@ -177,6 +182,8 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
         "runs",
         "--set",
         "duration=1.5",
+        "--gccp",
+        "predictor=cv",
     )
     result = sb3_gccp(*args, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -187,6 +194,8 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
     # --set replaced the entry's world key, for training and in what the run records.
     assert written["world"]["duration"] == 1.5
     assert yaml.safe_load((run / "config.yml").read_text())["env_kwargs"]["duration"] == 1.5
+    # --gccp replaced the entry's predictor (learned) the same way.
+    assert yaml.safe_load((run / "config.yml").read_text())["gccp"]["predictor"] == "cv"
     result = sb3_gccp(
         "evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path
     )

@@ -82,6 +82,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="world config key (repeatable) of every env the stage trains on, over the zoo entry's "
         "env_kwargs: --set traffic=sumo",
     )
+    parser.add_argument(
+        "--gccp",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="key (repeatable) of the decider entry's gccp map, decider and all stages: "
+        "--gccp predictor=none trains w/o GCCP",
+    )
     parser.set_defaults(func=run)
 
 
@@ -109,6 +117,10 @@ def run(args: argparse.Namespace) -> None:
         raise CLIError("-n/--n-timesteps must be positive")
     if args.set and resume is not None:
         raise CLIError("--set cannot change a resumed run's world: it keeps its config.yml")
+    if args.gccp and resume is not None:
+        raise CLIError("--gccp cannot change a resumed run's settings: it keeps its config.yml")
+    if args.gccp and args.stage == "planner":
+        raise CLIError("--gccp sets the decider's gccp map: use it with --stage decider or --stage all")
     world = parse_assignments(args.set)
     load_world_config(None, args.set)  # every key known and in range, before anything is written
     request = StageRequest(
@@ -123,6 +135,7 @@ def run(args: argparse.Namespace) -> None:
         torch_threads=args.torch_threads,
         planner=Path(args.planner) if args.planner else None,
         world=world,
+        gccp=parse_assignments(args.gccp, "--gccp"),
         argv=["sb3_gccp", *sys.argv[1:]],
     )
     try:

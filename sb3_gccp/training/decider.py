@@ -203,8 +203,9 @@ def write_decider_run(
 def train_all(request: StageRequest) -> tuple[Path, Path]:
     """The main job: the planner, then the decision-maker with it; return both run folders' models."""
     # Check the decider's entry before hours of planner training.
-    gccp = gccp_settings(load_hyperparams(request.config_file, DECIDER_ENV_ID))
-    planner_request = replace(request, max_episodes=gccp.planner_episodes, n_timesteps=None)
+    entry = load_hyperparams(request.config_file, DECIDER_ENV_ID)
+    gccp = gccp_settings({"gccp": {**(entry.get("gccp") or {}), **request.gccp}})
+    planner_request = replace(request, max_episodes=gccp.planner_episodes, n_timesteps=None, gccp={})
     planner = train_planner(planner_request)
     decider_run = train_decider(replace(request, planner=planner))
     return planner, decider_run

@@ -124,6 +124,8 @@ class StageRequest:
     """The folder of a new run; None: a new ``<log_folder>/<stage>/<env_id>_<seed>_<time>``."""
     world: dict[str, Any] = field(default_factory=dict)
     """World config keys replacing those of the entry's ``env_kwargs`` (``--set``; a new run only)."""
+    gccp: dict[str, Any] = field(default_factory=dict)
+    """Keys replacing those of the decider entry's ``gccp`` map (``--gccp``; a new decider run only)."""
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
     def given_options(self) -> dict[str, Any]:
@@ -161,6 +163,8 @@ def open_run(request: StageRequest, env_id: str, stage: str) -> Run:
         settings = load_hyperparams(request.config_file, env_id)
         if request.world:
             settings["env_kwargs"] = {**(settings.get("env_kwargs") or {}), **request.world}
+        if request.gccp:
+            settings["gccp"] = {**(settings.get("gccp") or {}), **request.gccp}
         if request.n_timesteps is not None:
             settings["n_timesteps"] = request.n_timesteps
         stamp = time.strftime("%Y%m%d-%H%M%S")
