@@ -263,9 +263,9 @@ def main() -> None:
     print(f"offroad {reaching['offroad']:.3f} of episodes (default traffic)")
     print(f"stop_rate {stop_rate:.3f} (hold subgoals only for 4 s, empty road)")
     print(
-        f"restart_rate {restart['restart_rate']:.3f} over {restart['stops']} stops along the route (drove off "
-        f"within 3 s when sent on, empty road); completion after the stop {restart['completion_after_stop']:.3f}; "
-        f"{restart['not_stopped']} holds did not stop"
+        f"restart_rate {restart['restart_rate']:.3f} over {restart['stops']} stops along the route "
+        f"(drove off within 3 s when sent on, empty road); completion after the stop "
+        f"{restart['completion_after_stop']:.3f}; {restart['not_stopped']} holds did not stop"
     )
     for task in TASKS:
         rows = [r for r in results if r.task == task]

@@ -44,7 +44,9 @@ def test_a_write_that_fails_leaves_the_file_before_it(tmp_path, monkeypatch):
     import sb3_gccp.training.checkpoints as checkpoints
 
     (tmp_path / "decider.zip").write_bytes(b"not read here")
-    hierarchy = Hierarchy(tmp_path, planner_file="scripted", predictor="none", trained_world={"duration": 20.0})
+    hierarchy = Hierarchy(
+        tmp_path, planner_file="scripted", predictor="none", trained_world={"duration": 20.0}
+    )
     before = hierarchy.write().read_text()
     changed = Hierarchy(tmp_path, planner_file="scripted", predictor="none", trained_world={"duration": 25.0})
 

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-
 MOVE_TO_XY_WARNING = "Use of deprecated parameter lane in function moveToXY"
 """Start of the warning TraCI gives for SMARTS's ``moveToXY(..., lane=...)``."""
 
