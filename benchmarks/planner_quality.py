@@ -200,13 +200,12 @@ def restarting(
                 continue
             stops += 1
             start = np.array([world.ego.x, world.ego.y])
-            drove_off = False
-            for decision in range(10_000):
+            drove_off, decisions, terminated, truncated = False, 0, False, False
+            while not (terminated or truncated):
                 obs, _, terminated, truncated, info = env.step(farthest(obs, env.action_masks()))
-                if decision < restart_decisions:
+                decisions += 1
+                if decisions <= restart_decisions:
                     drove_off |= bool(np.hypot(world.ego.x - start[0], world.ego.y - start[1]) >= 1.0)
-                if terminated or truncated:
-                    break
             moved += drove_off or bool(info["is_success"])
             completed += bool(info["is_success"])
     return {

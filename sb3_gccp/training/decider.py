@@ -51,7 +51,7 @@ from sb3_gccp.gccp.predictor import load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.hierarchy import Hierarchy
-from sb3_gccp.hyperparams import HyperparamsError, load_hyperparams
+from sb3_gccp.hyperparams import HyperparamsError
 from sb3_gccp.training.checkpoints import Checkpoint, write_atomically
 from sb3_gccp.training.episodes import rolling_rate
 from sb3_gccp.training.planner import train_planner
@@ -65,6 +65,7 @@ from sb3_gccp.training.run_folder import (
     new_model,
     open_run,
     prepare_run_folder,
+    requested_settings,
     resume_checkpoint,
     run_budget,
 )
@@ -203,8 +204,7 @@ def write_decider_run(
 def train_all(request: StageRequest) -> tuple[Path, Path]:
     """The main job: the planner, then the decision-maker with it; return both run folders' models."""
     # Check the decider's entry before hours of planner training.
-    entry = load_hyperparams(request.config_file, DECIDER_ENV_ID)
-    gccp = gccp_settings({"gccp": {**(entry.get("gccp") or {}), **request.gccp}})
+    gccp = gccp_settings(requested_settings(request, DECIDER_ENV_ID))
     planner_request = replace(request, max_episodes=gccp.planner_episodes, n_timesteps=None, gccp={})
     planner = train_planner(planner_request)
     decider_run = train_decider(replace(request, planner=planner))

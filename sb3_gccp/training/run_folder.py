@@ -150,6 +150,22 @@ def latest_run(stage_dir: Path) -> Path | None:
     return max(runs, key=lambda p: (p / CONFIG_FILE).stat().st_mtime, default=None)
 
 
+def requested_settings(request: StageRequest, env_id: str) -> dict[str, Any]:
+    """The zoo file's ``env_id`` entry with what the request replaces: world keys (``--set``), ``gccp``
+    keys (``--gccp``) and ``n_timesteps``.
+
+    :raises HyperparamsError: the file or the entry cannot be read
+    """
+    settings = load_hyperparams(request.config_file, env_id)
+    if request.world:
+        settings["env_kwargs"] = {**(settings.get("env_kwargs") or {}), **request.world}
+    if request.gccp:
+        settings["gccp"] = {**(settings.get("gccp") or {}), **request.gccp}
+    if request.n_timesteps is not None:
+        settings["n_timesteps"] = request.n_timesteps
+    return settings
+
+
 def open_run(request: StageRequest, env_id: str, stage: str) -> Run:
     """The run of a stage: a new one from the zoo file's ``env_id`` entry, or with ``request.resume``
     the run's own resolved config, seed and options (those given again replace them). Nothing is
@@ -160,13 +176,7 @@ def open_run(request: StageRequest, env_id: str, stage: str) -> Run:
     """
     if request.resume is None:
         options = RunOptions.resolve(request.given_options())
-        settings = load_hyperparams(request.config_file, env_id)
-        if request.world:
-            settings["env_kwargs"] = {**(settings.get("env_kwargs") or {}), **request.world}
-        if request.gccp:
-            settings["gccp"] = {**(settings.get("gccp") or {}), **request.gccp}
-        if request.n_timesteps is not None:
-            settings["n_timesteps"] = request.n_timesteps
+        settings = requested_settings(request, env_id)
         stamp = time.strftime("%Y%m%d-%H%M%S")
         run_dir = request.run_dir or request.log_folder / stage / f"{env_id}_{request.seed}_{stamp}"
         return Run(run_dir, settings, request.seed, options, resumed=False)
