@@ -115,6 +115,10 @@ class IntersectionConfig:
     """Range [m] of the ego's start distance before its stop line, drawn uniformly."""
     ego_start_speed: tuple[float, float] = (4.0, 8.0)
     """Range [m/s] of the ego's start speed, drawn uniformly."""
+    ego_start_standing: float = 0.0
+    """Chance that the ego instead starts at rest at a uniform point of one of its task's paths, from
+    10 m before the stop line to 5 m past the junction box (ours, for the planner env: a decision-maker
+    can stop the car anywhere, also inside a turn, and the planner must drive off from there)."""
     ego_lane: str = "random"
     """'random': ego starts on any lane of its arm (it may need a lane change); 'task': a task lane."""
     exit_distance: float = 20.0
@@ -358,7 +362,7 @@ def _validate(config: IntersectionConfig) -> None:
     for name in ("scripted_stop_aligned", "r_subgoal_needs_travel"):
         if not isinstance(getattr(config, name), bool):
             raise ValueError(f"{name} must be true or false, got {getattr(config, name)!r}")
-    for name in ("spawn_probability", "hold_probability", "hold_continue"):
+    for name in ("spawn_probability", "hold_probability", "hold_continue", "ego_start_standing"):
         value = getattr(config, name)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {value!r}")

@@ -71,6 +71,8 @@ class ScriptedPlanner:
 
 HOLD_SPEED_COST = 0.2
 """Steps of later arrival [1/(m/s)] the search planner trades for each m/s less at the end on a hold."""
+CRAWL_SPEED = 1.0
+"""Below this speed [m/s], with the goal out of reach, the search planner speeds up ('keep direction')."""
 ROLLOUT_CACHE_SIZE = 512
 """Rollouts the search planner keeps, by speed."""
 BOX_HALF_LENGTH = 2.5
@@ -231,6 +233,11 @@ class SearchPlanner:
             # A hold on the ego's lane: of the sequences that reach it soonest, the one that ends slowest.
             cost = np.where(reached & usable, arrival + HOLD_SPEED_COST * speed_after[:, -1], np.inf)
             return int(first[np.argmin(cost)])
+        if speed < CRAWL_SPEED and allowed[EgoAction.KEEP_DIRECTION] and not (reached & usable).any():
+            # Out of reach from a standstill or a crawl: drive off. Standing, every action but 'keep
+            # direction' leaves the ego in the same state, and a turn holds a crawl: a sequence that waits
+            # before it speeds up would be chosen again at the next step, for ever.
+            usable &= first == EgoAction.KEEP_DIRECTION
         # Out of reach: get onto the goal's line (its lane) at the end, without losing speed.
         lateral = np.abs(-(poses[:, -1, 0] - gx) * np.sin(gh) + (poses[:, -1, 1] - gy) * np.cos(gh))
         slack = 1.0 - speed_after / cfg.cruise_speed

@@ -16,6 +16,10 @@ from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, Traffic, 
 
 EGO_ARM = 0
 """The ego always enters from the south arm."""
+STANDING_START_BEFORE = 10.0
+"""A standing start (``ego_start_standing``) lies at most this far [m] before the stop line ..."""
+STANDING_START_AFTER = 5.0
+"""... and at most this far [m] past the junction box."""
 
 
 def make_traffic(
@@ -149,7 +153,8 @@ class IntersectionWorld:
         self.ego = EgoState(float(x), float(y), float(heading), speed)
 
     def _draw_ego_start(self) -> tuple[int, float, float]:
-        """The ego's start: a lane path of its arm, an arc length on it and a speed."""
+        """The ego's start: a lane path of its arm, an arc length on it and a speed; with
+        ``ego_start_standing``, at rest on one of its task's paths, possibly inside the junction."""
         cfg, layout, rng = self.config, self.layout, self.rng
         lanes = (
             range(layout.lanes)
@@ -157,6 +162,11 @@ class IntersectionWorld:
             else sorted({layout.movements[p].lane for p in self._task_paths})
         )
         lane = int(rng.choice(list(lanes)))
+        if cfg.ego_start_standing and rng.uniform() < cfg.ego_start_standing:
+            path = int(rng.choice(self._task_paths))
+            end = layout.junction_end_s[path] + STANDING_START_AFTER
+            s = rng.uniform(layout.stop_s - STANDING_START_BEFORE, end)
+            return path, float(s), 0.0
         path = layout.paths_from(EGO_ARM, lane=lane)[0]
         s = layout.stop_s - rng.uniform(*cfg.ego_start_distance)
         return path, float(s), float(rng.uniform(*cfg.ego_start_speed))

@@ -225,6 +225,20 @@ def test_search_planner_never_takes_a_masked_action():
         assert only_turns[SEARCH(planner_obs(goal, speed), only_turns)]
 
 
+@pytest.mark.parametrize("goal", [(4.6, 14.0, 1.32), (3.8, 16.3, 1.43)])
+def test_search_planner_drives_off_from_a_standstill_for_a_goal_out_of_reach(goal):
+    # Stopped inside a turn, sent to a candidate beyond 3 s of driving: every sequence that waits before
+    # it speeds up scores alike, and one chosen once was chosen at every step (the ego stood for good).
+    from gccp_envs.action import EgoMotion, EgoState
+    from gccp_envs.geometry import poses_to_frame
+
+    motion, state, goal = EgoMotion(IntersectionConfig()), EgoState(0.0, 0.0, 0.0, 0.0), np.asarray(goal)
+    for _ in range(30):
+        local = poses_to_frame(goal, np.array([state.x, state.y]), state.heading)
+        state = motion.step(state, SEARCH(planner_obs(local, state.speed)))
+    assert np.hypot(state.x, state.y) > 1.0
+
+
 def drive_search_planner(goal, speed, steps=30):
     """Steps until the search planner, driving the ego's kinematics from the origin, reaches ``goal``
     as the env counts it (None if it does not within ``steps``)."""

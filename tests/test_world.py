@@ -55,6 +55,35 @@ def test_reset_task_option_and_ego_lane_task():
         world.reset(np.random.default_rng(0), "diagonal")
 
 
+def test_standing_start_anywhere_on_the_tasks_path():
+    world = IntersectionWorld(IntersectionConfig(spawn_probability=0.12, ego_start_standing=1.0))
+    layout = world.layout
+    inside = 0
+    for seed in range(30):
+        world.reset(np.random.default_rng(seed), "left")
+        ego = world.ego
+        assert ego.speed == 0.0 and world.ego_on_road(ego)
+        path = np.array(world._task_paths)
+        s, d = layout.paths.project(path, np.array([[ego.x, ego.y]] * len(path)))
+        on = int(np.argmin(np.abs(d)))
+        assert abs(d[on]) < 1e-3
+        assert layout.stop_s - 10.0 - 1e-3 <= s[on] <= layout.junction_end_s[path[on]] + 5.0 + 1e-3
+        inside += layout.stop_s < s[on] < layout.junction_end_s[path[on]]
+        idx = world.traffic.indices
+        assert np.all(np.hypot(*(world.traffic.pose[idx, :2] - [ego.x, ego.y]).T) >= 15.0)
+    assert inside >= 10  # most draws are inside the turn, where a held car must drive off again
+
+
+def test_no_standing_start_keeps_the_episodes():
+    plain, zero = IntersectionWorld(IntersectionConfig()), IntersectionWorld(
+        IntersectionConfig(ego_start_standing=0.0)
+    )
+    for seed in range(3):
+        plain.reset(np.random.default_rng(seed))
+        zero.reset(np.random.default_rng(seed))
+        assert plain.ego == zero.ego
+
+
 @pytest.mark.parametrize("task", sorted(EXITS))
 @pytest.mark.parametrize("exit_task", sorted(EXITS))
 def test_success_only_at_the_tasks_own_exit(make_world, task, exit_task):
