@@ -130,5 +130,6 @@ def test_a_failed_atomic_write_leaves_the_old_file_whole(tmp_path):
     with pytest.raises(OSError):
         write_atomically(path, fails)
     assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["metrics.json"]  # no half-written temporary left
     write_atomically(path, lambda temporary: temporary.write_text("new"))
     assert path.read_text() == "new" and [p.name for p in tmp_path.iterdir()] == ["metrics.json"]

@@ -51,10 +51,15 @@ def write_atomically(path: Path, write: Writer) -> None:
     The temporary name keeps the suffix (``decider.tmp.zip``): SB3 and numpy add theirs otherwise.
     """
     temporary = path.with_name(f"{path.stem}.tmp{path.suffix}")
-    write(temporary)
-    with temporary.open("rb+") as file:
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
+    try:
+        write(temporary)
+        with temporary.open("rb+") as file:
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        # A failed write (or rename, or Ctrl-C) leaves the old file as it was and no half-written one.
+        temporary.unlink(missing_ok=True)
+        raise
     _sync_folder(path.parent)
 
 
