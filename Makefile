@@ -19,10 +19,10 @@ typecheck:
 	status=$$?; rm -rf "$$tmp"; exit $$status
 
 test:
-	python -m pytest -q
+	python -m pytest -q -n 2
 
 test-slow:
-	python -m pytest -q -m slow
+	python -m pytest -q -n 2 -m slow
 
 bench:
 	python benchmarks/env_speed.py
