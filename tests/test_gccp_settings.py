@@ -55,6 +55,7 @@ def test_a_check_builds_the_mask_with_its_margin_and_extrapolation():
         ({"extrapolate_steps": -1}, "mask_extrapolate_steps must be a non-negative integer, got -1"),
         ({"ego_deceleration": 0.0}, "mask_ego_deceleration must be a positive number, got 0.0"),
         ({"yield_margin": "wide"}, "mask_yield_margin must be a non-negative number, got 'wide'"),
+        ({"fallback_margin": -0.5}, "mask_fallback_margin must be a non-negative number, got -0.5"),
     ],
 )
 def test_a_check_built_in_code_rejects_bad_values_by_their_yaml_key(values, message):
@@ -70,6 +71,7 @@ def test_the_yaml_form_of_a_check_round_trips_and_names_the_file_in_errors():
         "mask_extrapolate_steps": 10,
         "mask_ego_deceleration": None,
         "mask_yield_margin": None,
+        "mask_fallback_margin": None,
     }
     assert GCCPCheck.from_dict(check.to_dict()) == check
     assert check.replace({"mask_yield_margin": 0.5}).yield_margin == 0.5
@@ -84,7 +86,7 @@ def test_gccp_settings_read_the_check_from_their_mask_keys_and_write_them_back()
     settings = GCCPSettings.from_dict(values)
     assert settings.check == GCCPCheck(margin=1.0, yield_margin=0.5)
     written = settings.to_dict()
-    assert list(written)[-4:] == list(GCCPCheck().to_dict()) and "check" not in written
+    assert list(written)[-5:] == list(GCCPCheck().to_dict()) and "check" not in written
     assert GCCPSettings.from_dict(written) == settings
     with pytest.raises(ValueError, match=r"^unknown gccp settings key\(s\): 'check'"):
         GCCPSettings.from_dict({"check": {}})

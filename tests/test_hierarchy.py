@@ -32,6 +32,7 @@ def test_a_hierarchy_written_reads_back_the_same(tmp_path):
         "mask_extrapolate_steps",
         "mask_ego_deceleration",
         "mask_yield_margin",
+        "mask_fallback_margin",
         "world",
     ]
     assert spec["world"]["ego_start_speed"] == [4.0, 8.0]

@@ -141,6 +141,20 @@ def test_mask_lets_the_ego_go_past_a_car_that_waits_for_it():
     assert not held(moving).any()
 
 
+def test_a_fallback_margin_checks_again_only_when_no_candidate_passes():
+    # A car stands beside the ego, 2.7 m from its centre line: with 1 m margins the boxes overlap where
+    # the ego stands, so every candidate fails, the hold too; with the paper's boxes none does.
+    beside = scene([(0.0, 0.0, 0.0, 0.0), (3.0, 2.7, 0.0, 0.0)])
+    assert not GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0))(beside).any()
+    assert GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0, fallback_margin=0.0))(beside).all()
+    assert not GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0, fallback_margin=0.8))(beside).any()
+    # Where some candidates pass with the margin, the fallback changes nothing.
+    ahead = scene([(0.0, 0.0, 0.0, 8.0), (14.0, 0.0, np.pi, 0.0)])
+    plain = GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0))(ahead)
+    assert plain.any() and not plain.all()
+    np.testing.assert_array_equal(GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0, fallback_margin=0.0))(ahead), plain)
+
+
 def test_mask_allows_everything_without_neighbours():
     class Failing(nn.Module):
         def forward(self, obs, goals):

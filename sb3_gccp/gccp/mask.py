@@ -79,8 +79,9 @@ class GCCPMask:
         self.checker = CollisionChecker(margin=check.margin)
         self.extrapolate_steps = check.extrapolate_steps
         self.ego_deceleration = check.ego_deceleration
-        yield_margin = check.yield_margin
+        yield_margin, fallback = check.yield_margin, check.fallback_margin
         self.yield_checker = None if yield_margin is None else self.checker.with_margin(yield_margin)
+        self.fallback_checker = None if fallback is None else self.checker.with_margin(fallback)
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
@@ -116,6 +117,8 @@ class GCCPMask:
             future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
         waiting = yielding(obs) & present if self.yield_checker is not None else np.zeros_like(present)
         allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
+        if not allowed.any() and self.fallback_checker is not None:
+            allowed = self.fallback_checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
         if waiting.any():
             assert self.yield_checker is not None
             standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)

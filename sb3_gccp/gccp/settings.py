@@ -1,7 +1,7 @@
 """The GCCP module's settings: the collision check (:class:`GCCPCheck`) and the decider stage's
 schedule and predictor training (:class:`GCCPSettings`, the ``gccp`` map of a zoo entry).
 
-:class:`GCCPCheck` is the one home of the four ``mask_*`` settings: their defaults, their validation,
+:class:`GCCPCheck` is the one home of the five ``mask_*`` settings: their defaults, their validation,
 their YAML form (the same keys in a zoo entry's ``gccp`` map, in ``hierarchy.yml`` and after
 ``--mask``) and the mask they build (:class:`~sb3_gccp.gccp.mask.GCCPMask` takes one). This module
 imports no torch, so that the command line can name the keys without loading it.
@@ -48,6 +48,10 @@ class GCCPCheck:
     """A neighbour that stands with the ego's box in its lane ahead waits for the ego: it is checked where
     it stands, with this box margin [m], instead of along its prediction; null: along its prediction
     (the paper). Breaks the stand-offs in which the ego blocks a car that the mask predicts to go."""
+    fallback_margin: float | None = None
+    """When no candidate passes the check, not even the hold, check them again with this box margin [m]
+    (0: the paper's boxes); null: hold. With a margin every candidate can fail beside a standing car that
+    waits for the ego, and holding then waits for ever."""
 
     def __post_init__(self) -> None:
         _validate(self.to_dict(), "")
@@ -67,12 +71,13 @@ class GCCPCheck:
             raise ValueError(f"unknown GCCP check key(s) {', '.join(unknown)}: expected {expected}")
         _validate(values, where)
         margin, deceleration = values.get("mask_margin", 0.0), values.get("mask_ego_deceleration")
-        yield_margin = values.get("mask_yield_margin")
+        yield_margin, fallback = values.get("mask_yield_margin"), values.get("mask_fallback_margin")
         return cls(
             float(margin),
             values.get("mask_extrapolate_steps", 0),
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
+            None if fallback is None else float(fallback),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -103,8 +108,9 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     require_int(f"{where}mask_extrapolate_steps", values.get("mask_extrapolate_steps", 0), minimum=0)
     if values.get("mask_ego_deceleration") is not None:
         require_positive(f"{where}mask_ego_deceleration", values["mask_ego_deceleration"])
-    if values.get("mask_yield_margin") is not None:
-        require_non_negative(f"{where}mask_yield_margin", values["mask_yield_margin"])
+    for key in ("mask_yield_margin", "mask_fallback_margin"):
+        if values.get(key) is not None:
+            require_non_negative(f"{where}{key}", values[key])
 
 
 @dataclass(frozen=True)
