@@ -152,7 +152,8 @@ def test_a_fallback_margin_checks_again_only_when_no_candidate_passes():
     ahead = scene([(0.0, 0.0, 0.0, 8.0), (14.0, 0.0, np.pi, 0.0)])
     plain = GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0))(ahead)
     assert plain.any() and not plain.all()
-    np.testing.assert_array_equal(GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0, fallback_margin=0.0))(ahead), plain)
+    fallback = GCCPMask(TowardsGoal(), GCCPCheck(margin=1.0, fallback_margin=0.0))
+    np.testing.assert_array_equal(fallback(ahead), plain)
 
 
 def test_mask_allows_everything_without_neighbours():
