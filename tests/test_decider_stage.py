@@ -112,6 +112,23 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
     assert (state["episodes"], state["gradient_steps"]) == (5, 25)  # K_p = 5 steps per episode
 
 
+def test_the_same_seed_trains_the_same_decider_and_predictor(tmp_path, tiny_planner):
+    config = tmp_path / "tiny.yml"
+    config.write_text(yaml.safe_dump(TINY_DECIDER))
+    runs = []
+    for folder in ("a", "b"):
+        args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", folder, "--seed", "3")
+        result = sb3_gccp(*args, "--planner", str(tiny_planner), cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        (run,) = (tmp_path / folder / "decider").iterdir()
+        runs.append(run)
+    first, second = (th.load(run / "predictor.pt", weights_only=True)["state_dict"] for run in runs)
+    assert first.keys() == second.keys()
+    for key in first:  # the predictor starts from the run's seed, and so trains the same
+        assert th.equal(first[key], second[key]), key
+    assert (runs[0] / "episodes.csv").read_text() == (runs[1] / "episodes.csv").read_text()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

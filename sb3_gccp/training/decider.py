@@ -111,6 +111,7 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
         scripted = not (run.dir / PLANNER_FILE).is_file()
     gccp = gccp_settings(run.settings)
     world, n_timesteps, n_envs = run_budget(run.settings, own_keys=("gccp",))
+    th.manual_seed(run.seed)  # the predictor's first weights: the same seed, the same run
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
     if not run.resumed and not scripted:
         assert request.planner is not None
