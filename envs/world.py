@@ -161,7 +161,7 @@ class IntersectionWorld:
             if cfg.ego_lane == "random"
             else sorted({layout.movements[p].lane for p in self._task_paths})
         )
-        lane = int(rng.choice(list(lanes)))
+        lane = int(rng.choice(list(lanes)))  # drawn first either way: the draws that follow stay as they were
         if cfg.ego_start_standing and rng.uniform() < cfg.ego_start_standing:
             path = int(rng.choice(self._task_paths))
             end = layout.junction_end_s[path] + STANDING_START_AFTER
