@@ -130,10 +130,14 @@ def test_after_a_failure_no_job_starts_and_the_error_is_one_line(monkeypatch, ca
     assert "[1/5] seed 0 planner: failed: ValueError: broken" in capsys.readouterr().out
 
 
+TWO_WORKERS = (*FAST, "--set", "n_envs=2")
+"""Every run with two env worker processes (SubprocVecEnv): a job's process must be able to start them."""
+
+
 @pytest.fixture(scope="module")
 def two_at_once(tmp_path_factory: pytest.TempPathFactory):
     folder = tmp_path_factory.mktemp("jobs")
-    return folder, reproduce(folder, *FAST, "--methods", "ours", "dqn", "ppo", "--jobs", "2")
+    return folder, reproduce(folder, *TWO_WORKERS, "--methods", "ours", "dqn", "ppo", "--jobs", "2")
 
 
 def run_files(root: Path) -> dict[Path, int]:
@@ -165,7 +169,7 @@ def test_a_second_reproduce_reruns_no_finished_run(two_at_once):
     finished = run_files(root / "seed0")
 
     # As if the first had been killed with sac_discrete still to run.
-    again = reproduce(folder, *FAST, "--methods", "ours", "dqn", "ppo", "sac_discrete", "--jobs", "2")
+    again = reproduce(folder, *TWO_WORKERS, "--methods", "ours", "dqn", "ppo", "sac_discrete", "--jobs", "2")
     assert again.returncode == 0, again.stderr
     for name in ("ours", "dqn", "ppo", "predictor_errors"):
         assert f"seed 0 {name}: finished before, skipped" in again.stdout, name

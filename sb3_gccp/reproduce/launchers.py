@@ -174,8 +174,10 @@ class ProcessLauncher:
         assert log is not None
         self.logs.mkdir(parents=True, exist_ok=True)
         receiver, sender = self._context.Pipe(duplex=False)
+        # Not a daemon: a job's training starts env workers of its own (SubprocVecEnv), and daemonic
+        # processes may not have children. It still ends with this process (``_exit_with``).
         process = self._context.Process(
-            target=_child, args=(sender, self.plan_data, job.key, label, str(log)), daemon=True
+            target=_child, args=(sender, self.plan_data, job.key, label, str(log))
         )
         process.start()
         sender.close()
