@@ -132,6 +132,10 @@ class IntersectionConfig:
     not read: SMARTS's traffic is SUMO's, with the flow rates and speeds of the keys below."""
     smarts_flows: int = 50
     """Traffic variations per task scenario under SMARTS, one drawn per episode (paper IV: 50 flows)."""
+    smarts_grid_map: bool = True
+    """Under SMARTS, the bird's-eye view is SMARTS's drivable-area grid map (its camera sensor, as the paper's
+    state), not drawn from our layout of the same map (they agree on about 99 % of the cells); false saves
+    SMARTS's rendering."""
 
     # --- traffic ---------------------------------------------------------------------------------
     traffic: str = "builtin"
@@ -359,7 +363,7 @@ def _validate(config: IntersectionConfig) -> None:
         require_positive(name, getattr(config, name))
     if config.npc_patience is not None:
         require_positive("npc_patience", config.npc_patience)
-    for name in ("scripted_stop_aligned", "r_subgoal_needs_travel"):
+    for name in ("scripted_stop_aligned", "r_subgoal_needs_travel", "smarts_grid_map", "wrong_exit_penalty"):
         if not isinstance(getattr(config, name), bool):
             raise ValueError(f"{name} must be true or false, got {getattr(config, name)!r}")
     for name in ("spawn_probability", "hold_probability", "hold_continue", "ego_start_standing"):

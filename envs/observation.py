@@ -151,6 +151,9 @@ class SceneObserver:
         return routes, mask
 
     def _bev(self) -> np.ndarray:
+        sensed = self.world.sensed_bev()
+        if sensed is not None:
+            return sensed[None]
         ego = self.world.ego
         c, s = np.cos(ego.heading), np.sin(ego.heading)
         x = ego.x + c * self._bev_forward - s * self._bev_right

@@ -225,6 +225,11 @@ class IntersectionWorld:
         corners = box_corners(poses[:, 0], poses[:, 1], poses[:, 2], VEHICLE_LENGTH, VEHICLE_WIDTH)
         return np.all(self.layout.is_drivable(corners[..., 0], corners[..., 1]), axis=-1)
 
+    def sensed_bev(self) -> NDArray[np.uint8] | None:
+        """The bird's-eye view as the simulator's own sensor gives it, (S, S) 0/1 with the ego at the
+        centre, forward up; None where the observation draws it from the layout (ours)."""
+        return None
+
     def action_mask(self) -> NDArray[np.bool_]:
         """Actions after which the ego can stay on the road.
 

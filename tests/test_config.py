@@ -73,6 +73,8 @@ def test_replace_validates():
         ({"scripted_stop_aligned": "yes"}, "scripted_stop_aligned must be true or false"),
         ({"scripted_turn_speed": 0.0}, "scripted_turn_speed must be a positive number"),
         ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
+        ({"smarts_grid_map": "no"}, "smarts_grid_map must be true or false"),
+        ({"wrong_exit_penalty": 0}, "wrong_exit_penalty must be true or false"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
         ({"spawn_probability": -0.1}, "spawn_probability"),
         ({"ego_start_speed": (8.0, 4.0)}, "ego_start_speed"),

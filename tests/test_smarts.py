@@ -249,3 +249,39 @@ def test_subproc_vec_env_steps_smarts_worlds():
             venv.step(np.ones(2, np.int64))
     finally:
         venv.close()
+
+
+@needs_smarts
+def test_the_bev_is_smarts_grid_map_and_agrees_with_our_layout():
+    env = gym.make("GCCPPlanner-v0", task="left", **SMARTS)
+    try:
+        obs, _ = env.reset(seed=1)
+        world = env.unwrapped.world  # type: ignore[attr-defined]
+        observer = env.unwrapped.observer  # type: ignore[attr-defined]
+        agreement = []
+        for step in range(30):
+            grid = world.observation.drivable_area_grid_map.data[..., 0]
+            assert np.array_equal(obs["bev"][0], (grid > 0).astype(np.uint8))
+            world.sensed_bev = lambda: None  # the same pose drawn from our layout
+            agreement.append(np.mean(observer.observe()["bev"] == obs["bev"]))
+            del world.sensed_bev
+            turn = step >= 10 and env.unwrapped.action_masks()[2]  # type: ignore[attr-defined]
+            obs, _, terminated, truncated, _ = env.step(2 if turn else 1)  # on, then left where it may
+            assert not (terminated or truncated)
+        assert min(agreement) > 0.97
+        assert 0.1 < obs["bev"].mean() < 0.9
+    finally:
+        env.close()
+
+
+@needs_smarts
+def test_without_the_grid_map_the_bev_is_drawn_from_our_layout():
+    env = gym.make("GCCPPlanner-v0", task="left", smarts_grid_map=False, **SMARTS)
+    try:
+        obs, _ = env.reset(seed=1)
+        world = env.unwrapped.world  # type: ignore[attr-defined]
+        assert world.observation.drivable_area_grid_map is None
+        assert world.sensed_bev() is None
+        assert 0.1 < obs["bev"].mean() < 0.9
+    finally:
+        env.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from importlib.util import find_spec
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,21 @@ def test_cli_writes_a_gif_and_reports_the_outcome(tiny_hierarchy, tmp_path, caps
     with Image.open(out) as gif:
         assert gif.n_frames == 16 and gif.size == (600, 600)
         assert gif.info["duration"] == 50
+
+
+@pytest.mark.skipif(find_spec("smarts") is None, reason="SMARTS is not installed (the smarts extra)")
+def test_cli_writes_a_gif_of_an_episode_in_smarts(tiny_hierarchy, tmp_path, capfd):
+    out = tmp_path / "smarts.gif"
+    args = ["video", "--model", str(tiny_hierarchy), "--task", "left", "--seed", "0", "--out", str(out)]
+    # capfd: SMARTS silences SUMO's start through sys.stdout's file descriptor (suppress_output)
+    assert main([*args, "--max-steps", "15", "--set", "simulator=smarts"]) == 0
+    assert "stopped after 15 steps" in capfd.readouterr().out
+    with Image.open(out) as gif:
+        assert gif.n_frames == 16 and gif.size == (600, 600)
+        gif.seek(15)
+        last = np.asarray(gif.convert("RGB"))
+        gif.seek(0)
+        assert not np.array_equal(np.asarray(gif.convert("RGB")), last)  # SMARTS moved the world
 
 
 @pytest.mark.parametrize(

@@ -10,6 +10,9 @@
 - **Other vehicles** are SMARTS's neighbour states within ``observation_radius`` plus 15 m, in the traffic
   table the observation reads, each on the lane path nearest to it. Vehicles the ego first sees get a past
   at constant speed, as the ego does.
+- **The bird's-eye view** is SMARTS's drivable-area grid map around the ego, heading up
+  (``smarts_grid_map``; else drawn from our layout of the same map, as in our world). The routes and the
+  subgoals stay on our lane paths: SMARTS's map is our layout, built by ``netconvert``.
 - **Outcomes** are SMARTS's events: a collision, off road, the goal (the task's exit, our test) reached.
   A wrong exit is ours (SMARTS has no such event). SMARTS ends nothing else: no off-route, wrong-way or
   not-moving ends, no step limit (``duration`` truncates, as in our world).
@@ -28,7 +31,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from smarts.core.agent_interface import AgentInterface, DoneCriteria, NeighborhoodVehicles
+from smarts.core.agent_interface import (
+    AgentInterface,
+    DoneCriteria,
+    DrivableAreaGridMap,
+    NeighborhoodVehicles,
+)
 from smarts.core.controllers import ActionSpaceType
 from smarts.core.coordinates import Heading, Point
 from smarts.core.plan import NavigationMission, PositionalGoal, Start
@@ -165,6 +173,11 @@ class SmartsWorld(IntersectionWorld):
         """The SMARTS instance of this world, started on first use."""
         if self._smarts is None:
             apply_fixes()
+            config = self.config
+            grid_map = None
+            if config.smarts_grid_map:
+                resolution = config.bev_extent / config.bev_size
+                grid_map = DrivableAreaGridMap(config.bev_size, config.bev_size, resolution)
             interface = AgentInterface(
                 action=ActionSpaceType.RelativeTargetPose,
                 neighborhood_vehicle_states=NeighborhoodVehicles(
@@ -173,6 +186,7 @@ class SmartsWorld(IntersectionWorld):
                 done_criteria=DoneCriteria(
                     off_route=False, on_shoulder=False, wrong_way=False, not_moving=False
                 ),
+                drivable_area_grid_map=grid_map or False,
             )
             self._log_dir = tempfile.mkdtemp(prefix="gccp-smarts-")
             self._smarts = SMARTS(
@@ -260,6 +274,13 @@ class SmartsWorld(IntersectionWorld):
             success=success,
             wrong_exit=exit_arm is not None and not success,
         )
+
+    def sensed_bev(self) -> NDArray[np.uint8] | None:
+        """SMARTS's drivable-area grid map (``smarts_grid_map``): heading up, as our bird's-eye view."""
+        grid = None if self.observation is None else self.observation.drivable_area_grid_map
+        if grid is None:
+            return None
+        return (np.asarray(grid.data)[..., 0] > 0).astype(np.uint8)
 
     def _read(self, observation: Any, speed: float | None = None) -> None:
         """The ego's pose (and, without ``speed``, SMARTS's speed) and the traffic table from SMARTS."""
