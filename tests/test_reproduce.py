@@ -210,20 +210,22 @@ def test_quick_preset_shrinks_every_network_and_merges_dotted_overrides():
     assert ours["env_kwargs"] == {"task": "mixed", "r_subgoal_needs_travel": True, "duration": 5.0}
 
 
-def test_tables_give_mean_and_sample_std_over_seeds():
+def test_tables_give_the_mean_and_min_max_over_seeds():
     def table(left: float, crashed: float, timeout: float) -> dict[str, dict[str, float]]:
         rates = {"offroad": 0.0, "wrong_exit": 0.0, "episodes": 50.0}
         row = {"success": left, "crashed": crashed, "timeout": timeout, **rates}
         return {task: dict(row) for task in ("left", "straight", "right", "overall")}
 
-    seeds = [table(50.0, 10.0, 0.0), table(70.0, 20.0, 4.0)]
+    seeds = [table(50.0, 10.0, 0.0), table(70.0, 20.0, 4.0), table(66.0, 12.0, 2.0)]
     text = format_results_table([("ours", seeds), ("DQN", [table(22.0, 28.7, 1.0)])])
     lines = text.splitlines()
     assert lines[0] == "| method | left S/C | straight S/C | right S/C | overall S/C | timeout % |"
-    assert lines[2] == "| ours | " + " | ".join(["60.0±14.1 / 15.0±7.1"] * 4) + " | 2.0±2.8 |"
+    cells = " | ".join(["62.0 (50.0-70.0) / 14.0 (10.0-20.0)"] * 4)
+    assert lines[2] == f"| ours | {cells} | 2.0 (0.0-4.0) |"
     assert lines[3] == "| DQN | " + " | ".join(["22.0 / 28.7"] * 4) + " | 1.0 |"
     spread = aggregate(seeds)["overall"]["success"]
-    assert spread["mean"] == pytest.approx(60.0) and spread["std"] == pytest.approx(14.142, abs=1e-3)
+    assert spread["mean"] == pytest.approx(62.0) and spread["std"] == pytest.approx(10.583, abs=1e-3)
+    assert (spread["min"], spread["max"]) == (50.0, 70.0)
 
 
 @pytest.mark.slow  # 19 s; the quick preset test runs every variant over a trained planner in the fast tier

@@ -277,7 +277,7 @@ class ReproduceRequest:
     zoo_files: dict[str, Path] = field(default_factory=dict)
     """Method -> the zoo file its entry comes from instead of the shipped one (such as ``tune``'s)."""
     seeds: tuple[int, ...] = (0,)
-    """Training seeds; with several, the tables give mean and sample std over them."""
+    """Training seeds; with several, the tables give the mean and the min-max over them."""
     methods: tuple[str, ...] = tuple(METHODS)
     planner: Path | None = None
     """A trained motion-planner ``.zip`` for every hierarchy variant; None trains one per seed."""

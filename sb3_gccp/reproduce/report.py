@@ -23,27 +23,33 @@ RATES = ("success", "crashed", "offroad", "wrong_exit", "timeout")
 
 
 def aggregate(tables: Sequence[Mapping[str, Mapping[str, float]]]) -> dict[str, dict[str, dict[str, float]]]:
-    """Mean and sample standard deviation over seeds of every rate of :func:`~sb3_gccp.evaluation.summarize`
-    tables (std 0 with one seed)."""
+    """Mean, sample standard deviation, min and max over seeds of every rate of
+    :func:`~sb3_gccp.evaluation.summarize` tables (std 0 with one seed)."""
     result: dict[str, dict[str, dict[str, float]]] = {}
     for task in tables[0]:
         result[task] = {}
         for rate in RATES:
             values = np.array([t[task][rate] for t in tables])
             std = float(values.std(ddof=1)) if len(values) > 1 else 0.0
-            result[task][rate] = {"mean": float(values.mean()), "std": std}
+            result[task][rate] = {
+                "mean": float(values.mean()),
+                "std": std,
+                "min": float(values.min()),
+                "max": float(values.max()),
+            }
     return result
 
 
 def _spread(values: Sequence[float]) -> str:
     if len(values) == 1:
         return f"{values[0]:.1f}"
-    return f"{np.mean(values):.1f}±{np.std(values, ddof=1):.1f}"
+    return f"{np.mean(values):.1f} ({min(values):.1f}-{max(values):.1f})"
 
 
 def format_results_table(rows: Sequence[tuple[str, Sequence[Mapping[str, Mapping[str, float]]]]]) -> str:
     """The paper's table: per method (a label and its summary table per training seed), success /
-    collision [%] per task and overall, and the overall timeout share; mean±std over several seeds."""
+    collision [%] per task and overall, and the overall timeout share; over several seeds the mean and, in
+    brackets, the lowest and highest seed's."""
     lines = [
         "| method | left S/C | straight S/C | right S/C | overall S/C | timeout % |",
         "|---|---|---|---|---|---|",
@@ -120,7 +126,8 @@ def _table_document(
 ) -> str:
     request, preset = plan.request, plan.preset
     seeds = ", ".join(map(str, request.seeds))
-    spread = " (mean±std over the training seeds)" if len(request.seeds) > 1 else ""
+    several = len(request.seeds) > 1
+    spread = " (the mean over the training seeds, their min-max in brackets)" if several else ""
     rows = [(METHODS[n].label, [r["table"] for r in runs[n].values()]) for n in names]
     world = IntersectionConfig.from_dict(dict(preset.world))
     return "\n".join(
