@@ -258,7 +258,7 @@ def test_the_bev_is_smarts_grid_map_and_agrees_with_our_layout():
         obs, _ = env.reset(seed=1)
         world = env.unwrapped.world  # type: ignore[attr-defined]
         observer = env.unwrapped.observer  # type: ignore[attr-defined]
-        agreement = []
+        agreement, heading = [], world.ego.heading
         for step in range(30):
             grid = world.observation.drivable_area_grid_map.data[..., 0]
             assert np.array_equal(obs["bev"][0], (grid > 0).astype(np.uint8))
@@ -268,6 +268,7 @@ def test_the_bev_is_smarts_grid_map_and_agrees_with_our_layout():
             turn = step >= 10 and env.unwrapped.action_masks()[2]  # type: ignore[attr-defined]
             obs, _, terminated, truncated, _ = env.step(2 if turn else 1)  # on, then left where it may
             assert not (terminated or truncated)
+        assert abs(world.ego.heading - heading) > 0.3  # the view turned with the ego
         assert min(agreement) > 0.97
         assert 0.1 < obs["bev"].mean() < 0.9
     finally:
