@@ -174,7 +174,7 @@ class SmartsWorld(IntersectionWorld):
         if self._smarts is None:
             apply_fixes()
             config = self.config
-            grid_map = None
+            grid_map: DrivableAreaGridMap | bool = False
             if config.smarts_grid_map:
                 resolution = config.bev_extent / config.bev_size
                 grid_map = DrivableAreaGridMap(config.bev_size, config.bev_size, resolution)
@@ -186,7 +186,7 @@ class SmartsWorld(IntersectionWorld):
                 done_criteria=DoneCriteria(
                     off_route=False, on_shoulder=False, wrong_way=False, not_moving=False
                 ),
-                drivable_area_grid_map=grid_map or False,
+                drivable_area_grid_map=grid_map,
             )
             self._log_dir = tempfile.mkdtemp(prefix="gccp-smarts-")
             self._smarts = SMARTS(
