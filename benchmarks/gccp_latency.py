@@ -126,7 +126,7 @@ def main() -> None:
     print(f"decision_ms {np.median(decision):.3f} (one env.step: T_m = {t_m} planner steps, no mask)")
     whole = {}
     for name, check in (("paper", GCCPCheck()), ("shipped", hierarchy.check)):
-        mask = check.make_mask(shipped.predictor)
+        mask = check.make_mask(shipped.predictor, IntersectionConfig.from_dict(hierarchy.world))
         forward, collision, whole[name] = check_ms(mask, observations, args.repeats)
         crowded_ms = whole[name][crowded]
         settings = ", ".join(f"{key} {value}" for key, value in check.to_dict().items())

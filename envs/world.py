@@ -42,6 +42,22 @@ def make_world(config: IntersectionConfig) -> IntersectionWorld:
     return IntersectionWorld(config)
 
 
+VehicleSizes = tuple[tuple[float, float], tuple[float, float]]
+"""(length, width) [m] of the ego and of the other vehicles."""
+BUILTIN_SIZES: VehicleSizes = ((VEHICLE_LENGTH, VEHICLE_WIDTH), (VEHICLE_LENGTH, VEHICLE_WIDTH))
+"""Our world's cars, and SUMO's with ``traffic: sumo``: 5 x 2 m, the ego as every other."""
+
+
+def vehicle_sizes(config: IntersectionConfig) -> VehicleSizes:
+    """The sizes of the ego and of the other vehicles in the world of config ``simulator`` (SMARTS not
+    imported)."""
+    if config.simulator == "smarts":
+        from gccp_envs.smarts import VEHICLE_SIZE
+
+        return VEHICLE_SIZE, VEHICLE_SIZE
+    return BUILTIN_SIZES
+
+
 @dataclass(frozen=True)
 class StepOutcome:
     """What happened to the ego in one step."""

@@ -266,14 +266,13 @@ class Hierarchy:
         ``world`` (default: the hierarchy's)."""
         if self.predictor == "none":
             return None
+        world = world or IntersectionConfig.from_dict(self.world)
         if self.predictor == "cv":
-            return self.check.make_mask(ConstantVelocityPredictor())
+            return self.check.make_mask(ConstantVelocityPredictor(), world)
         assert self.predictor_weights is not None
         predictor = load_predictor(self.predictor_weights)
-        check_predictor_world(
-            predictor, world or IntersectionConfig.from_dict(self.world), self.predictor_weights
-        )
-        return self.check.make_mask(predictor)
+        check_predictor_world(predictor, world, self.predictor_weights)
+        return self.check.make_mask(predictor, world)
 
     def decider_policy(
         self, world: IntersectionConfig, deterministic: bool = True, trusted: bool = False

@@ -50,6 +50,18 @@ def test_mask_is_per_candidate():
     np.testing.assert_allclose(predicted[:, 0, -1], obs["subgoals"], atol=1e-5)
 
 
+SMARTS_SIZES = ((3.68, 1.47), (3.68, 1.47))
+
+
+def test_the_boxes_have_the_sizes_the_mask_is_given():
+    obs = scene([(0.0, 0.0, 0.0, 8.0), (14.0, 0.0, np.pi, 0.0)])
+    allowed = GCCPMask(TowardsGoal(), sizes=SMARTS_SIZES)(obs)
+    np.testing.assert_array_equal(allowed, obs["subgoals"][:, 0] < 14.0 - 3.68)
+    # The standing car waits for a 5 m ego 12.5 m away (its front 10 m from the ego's), not for a smaller one.
+    stand = scene([(0.0, 0.0, 0.0, 0.0), (12.5, 0.5, np.pi, 0.0)])
+    assert yielding(stand)[0] and not yielding(stand, SMARTS_SIZES)[0]
+
+
 def test_extrapolate_continues_the_last_predicted_step():
     future = np.zeros((2, 3, 4, 3), np.float32)
     future[..., 0] = np.arange(1, 5) * 0.5  # 0.5 m per step along x

@@ -24,6 +24,7 @@ from gccp_envs.smarts.fixes import (
 )
 from gccp_envs.smarts.scenario import MAP_FILE, MISSIONS_FILE, scenario_folder, traffic_specs
 from gccp_envs.sumo.network import CACHE_VARIABLE, network_file
+from gccp_envs.world import vehicle_sizes
 
 needs_smarts = pytest.mark.skipif(
     find_spec("smarts") is None,
@@ -119,7 +120,7 @@ def test_the_envs_have_the_builtin_spaces_and_info_keys(env_id):
 
 
 @needs_smarts
-def test_the_observation_of_a_standing_ego_and_a_known_neighbour_is_in_our_frames():
+def test_the_observation_of_a_standing_ego_and_a_known_neighbour_is_in_our_frames_and_sizes():
     env = gym.make("GCCPPlanner-v0", task="left", **SMARTS)
     try:
         env.reset(seed=5)
@@ -147,6 +148,11 @@ def test_the_observation_of_a_standing_ego_and_a_known_neighbour_is_in_our_frame
         )
         assert obs["history"][1, -1, 4:8] == pytest.approx(expected, abs=1e-3)
         assert obs["history_mask"][1, -1] == 1.0
+        # The sizes the GCCP check gives SMARTS's vehicles are the ones SMARTS reports.
+        ego_size, traffic_size = vehicle_sizes(IntersectionConfig(**SMARTS))
+        assert (ego.bounding_box.length, ego.bounding_box.width) == pytest.approx(ego_size)
+        for vehicle in reported:
+            assert (vehicle.bounding_box.length, vehicle.bounding_box.width) == pytest.approx(traffic_size)
     finally:
         env.close()
 

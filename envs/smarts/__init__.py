@@ -16,6 +16,10 @@ from importlib.util import find_spec
 
 SMARTS_EXTRA = 'pip install -e ".[smarts]"'
 """How the SMARTS backend is installed."""
+VEHICLE_SIZE = (3.68, 1.47)
+"""(length, width) [m] of every vehicle in SMARTS, the ego and its traffic: SMARTS's passenger car. SMARTS
+gives SUMO's passenger-class traffic these boxes (its observations and its collisions), though SUMO
+drives them at its own default of 5 x 1.8 m."""
 
 
 def require_smarts_extra() -> None:

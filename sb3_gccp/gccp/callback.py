@@ -35,6 +35,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 from tqdm.auto import tqdm
 
+from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import DECIDER_FILE, EPISODES_FILE, PREDICTOR_FILE
 from sb3_gccp.gccp.predictor import TrajectoryPredictor, save_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
@@ -59,6 +60,7 @@ class GCCPCallback(BaseCallback):
     :param seed: seeds the predictor's batch sampling
     :param progress_bar: show a progress bar over episodes
     :param run_dir: the run folder whose ``checkpoints/`` it writes (None: no checkpoints)
+    :param world: the world the decider trains in, whose vehicles the masks check (default: ours)
     """
 
     def __init__(
@@ -69,10 +71,12 @@ class GCCPCallback(BaseCallback):
         seed: int = 0,
         progress_bar: bool = False,
         run_dir: Path | None = None,
+        world: IntersectionConfig | None = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
         self.settings = settings
+        self.world = world or IntersectionConfig()
         self.predictor = predictor
         self.buffer = buffer
         self.trainer = (
@@ -179,7 +183,7 @@ class GCCPCallback(BaseCallback):
         """Give every env worker a GCCP mask with a copy of the current predictor."""
         assert self.predictor is not None
         predictor = copy.deepcopy(self.predictor).cpu().eval()
-        self.training_env.env_method("set_mask_fn", self.settings.check.make_mask(predictor))
+        self.training_env.env_method("set_mask_fn", self.settings.check.make_mask(predictor, self.world))
 
     # --- saving and resuming -------------------------------------------------------------------
     def checkpoint(self, model: BaseAlgorithm) -> Checkpoint:

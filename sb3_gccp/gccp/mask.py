@@ -15,7 +15,7 @@ import torch as th
 from torch import nn
 
 from gccp_envs.config import DT
-from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH
+from gccp_envs.world import BUILTIN_SIZES, VehicleSizes
 from sb3_gccp.gccp.collision import CollisionChecker
 from sb3_gccp.gccp.predictor import STATE_KEYS
 from sb3_gccp.gccp.settings import GCCPCheck
@@ -40,23 +40,24 @@ def latest_states(obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     return state[:, :3], state[:, 3]
 
 
-def yielding(obs: Mapping[str, np.ndarray]) -> np.ndarray:
+def yielding(obs: Mapping[str, np.ndarray], sizes: VehicleSizes = BUILTIN_SIZES) -> np.ndarray:
     """Which neighbours stand with a corner of the ego's box in their lane ahead (within
     ``YIELD_LATERAL`` of their sides), within ``YIELD_REACH`` of their front: the traffic waits there for
     the ego to clear its path.
 
     :param obs: one decider observation
+    :param sizes: (length, width) [m] of the ego and of the neighbours
     :return: (N_s,) bool
     """
     pose, speed = latest_states(obs)
-    half_length, half_width = VEHICLE_LENGTH / 2.0, VEHICLE_WIDTH / 2.0
+    (ego_length, ego_width), (length, width) = sizes
     # The ego's corners, at the origin of its frame, in each neighbour's frame.
-    corners = np.array([(a * half_length, b * half_width) for a in (1, -1) for b in (1, -1)])
+    corners = np.array([(a * ego_length / 2.0, b * ego_width / 2.0) for a in (1, -1) for b in (1, -1)])
     c, s = np.cos(pose[:, 2:]), np.sin(pose[:, 2:])
     dx, dy = corners[None, :, 0] - pose[:, :1], corners[None, :, 1] - pose[:, 1:2]
     along, lateral = dx * c + dy * s, -dx * s + dy * c  # (N_s, 4)
-    ahead = (along > half_length) & (along < half_length + YIELD_REACH)
-    in_lane = np.abs(lateral) < half_width + YIELD_LATERAL
+    ahead = (along > length / 2.0) & (along < length / 2.0 + YIELD_REACH)
+    in_lane = np.abs(lateral) < width / 2.0 + YIELD_LATERAL
     present = np.asarray(obs["history_mask"])[1:].any(-1)
     return np.asarray(present & (speed < YIELD_SPEED) & (ahead & in_lane).any(-1))
 
@@ -71,12 +72,17 @@ class GCCPMask:
     :param predictor: a :class:`~sb3_gccp.gccp.predictor.TrajectoryPredictor`,
         :class:`~sb3_gccp.gccp.predictor.ConstantVelocityPredictor` or any module with their call signature
     :param check: how futures are checked (default: the paper's check, :class:`GCCPCheck` ())
+    :param sizes: (length, width) [m] of the ego and of the neighbours, before ``check.margin``
+        (default: our world's cars; :meth:`GCCPCheck.make_mask` gives the world's)
     """
 
-    def __init__(self, predictor: nn.Module, check: GCCPCheck | None = None) -> None:
+    def __init__(
+        self, predictor: nn.Module, check: GCCPCheck | None = None, sizes: VehicleSizes = BUILTIN_SIZES
+    ) -> None:
         self.check = check = check or GCCPCheck()
+        self.sizes = sizes
         self.predictor = predictor.eval()
-        self.checker = CollisionChecker(margin=check.margin)
+        self.checker = CollisionChecker(*sizes, margin=check.margin)
         self.extrapolate_steps = check.extrapolate_steps
         self.ego_deceleration = check.ego_deceleration
         yield_margin, fallback = check.yield_margin, check.fallback_margin
@@ -115,7 +121,9 @@ class GCCPMask:
         future = extrapolate(predicted, self.extrapolate_steps)
         if self.ego_deceleration is not None and self.extrapolate_steps:
             future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
-        waiting = yielding(obs) & present if self.yield_checker is not None else np.zeros_like(present)
+        waiting = np.zeros_like(present)
+        if self.yield_checker is not None:
+            waiting = yielding(obs, self.sizes) & present
         allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
         if not allowed.any() and self.fallback_checker is not None:
             allowed = self.fallback_checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)

@@ -1,7 +1,7 @@
 """The GCCP module's settings: the collision check (:class:`GCCPCheck`) and the decider stage's
 schedule and predictor training (:class:`GCCPSettings`, the ``gccp`` map of a zoo entry).
 
-:class:`GCCPCheck` is the one home of the five ``mask_*`` settings: their defaults, their validation,
+:class:`GCCPCheck` is the one home of the six ``mask_*`` settings: their defaults, their validation,
 their YAML form (the same keys in a zoo entry's ``gccp`` map, in ``hierarchy.yml`` and after
 ``--mask``) and the mask they build (:class:`~sb3_gccp.gccp.mask.GCCPMask` takes one). This module
 imports no torch, so that the command line can name the keys without loading it.
@@ -14,7 +14,14 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from gccp_envs.config import reject_unknown_keys, require_int, require_non_negative, require_positive
+from gccp_envs.config import (
+    IntersectionConfig,
+    reject_unknown_keys,
+    require_int,
+    require_non_negative,
+    require_positive,
+)
+from gccp_envs.world import BUILTIN_SIZES, VehicleSizes, vehicle_sizes
 
 if TYPE_CHECKING:
     from torch import nn
@@ -27,6 +34,9 @@ LEARNED = ("learned", "no_goal")
 """The variants whose predictor is trained (and saved as ``predictor.pt``)."""
 CHECK_PREFIX = "mask_"
 """What a :class:`GCCPCheck` field's name is preceded by in its YAML form."""
+VEHICLE_SIZES = ("simulator", "builtin")
+"""Whose car sizes the check's boxes have: the simulator's (5 x 2 m in ours, 3.68 x 1.47 m in SMARTS),
+or our world's 5 x 2 m in any simulator."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +62,10 @@ class GCCPCheck:
     """When no candidate passes the check, not even the hold, check them again with this box margin [m]
     (0: the paper's boxes); null: hold. With a margin every candidate can fail beside a standing car that
     waits for the ego, and holding then waits for ever."""
+    vehicle_sizes: str = "simulator"
+    """The boxes' sizes before the margin: 'simulator', the ego's and the traffic's in the world checked
+    (``gccp_envs.world.vehicle_sizes``), or 'builtin', 5 x 2 m for every vehicle, as in our world (what
+    the deciders trained in SMARTS before this setting were trained with)."""
 
     def __post_init__(self) -> None:
         _validate(self.to_dict(), "")
@@ -78,6 +92,7 @@ class GCCPCheck:
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
             None if fallback is None else float(fallback),
+            values.get("mask_vehicle_sizes", "simulator"),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -88,11 +103,15 @@ class GCCPCheck:
         """This check with the settings of ``values`` (YAML keys) replaced; see :meth:`from_dict`."""
         return GCCPCheck.from_dict({**self.to_dict(), **values}, where)
 
-    def make_mask(self, predictor: nn.Module) -> GCCPMask:
-        """The GCCP mask function of this check around ``predictor``."""
+    def make_mask(self, predictor: nn.Module, world: IntersectionConfig) -> GCCPMask:
+        """The GCCP mask function of this check around ``predictor``, for the vehicles of ``world``."""
         from sb3_gccp.gccp.mask import GCCPMask  # the mask module imports this one
 
-        return GCCPMask(predictor, self)
+        return GCCPMask(predictor, self, self.sizes(world))
+
+    def sizes(self, world: IntersectionConfig) -> VehicleSizes:
+        """(length, width) [m] of the ego's box and of the neighbours' before the margin, in ``world``."""
+        return vehicle_sizes(world) if self.vehicle_sizes == "simulator" else BUILTIN_SIZES
 
 
 CHECK_KEYS = tuple(CHECK_PREFIX + f.name for f in dataclasses.fields(GCCPCheck))
@@ -111,6 +130,10 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     for key in ("mask_yield_margin", "mask_fallback_margin"):
         if values.get(key) is not None:
             require_non_negative(f"{where}{key}", values[key])
+    sizes = values.get("mask_vehicle_sizes", "simulator")
+    if sizes not in VEHICLE_SIZES:
+        expected = ", ".join(VEHICLE_SIZES)
+        raise ValueError(f"{where}mask_vehicle_sizes must be one of {expected}, got {sizes!r}")
 
 
 @dataclass(frozen=True)

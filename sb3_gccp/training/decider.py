@@ -124,6 +124,7 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
         seed=run.seed,
         progress_bar=run.options.progress_bar,
         run_dir=run.dir,
+        world=world,
     )
     model = None if checkpoint is None else restore_decider(checkpoint, gccp_callback, run)
     planner = request.planner

@@ -44,6 +44,7 @@ from sb3_gccp.gccp.predictor import (
     save_predictor,
 )
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer, collect_decisions
+from sb3_gccp.gccp.settings import GCCPCheck
 from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors
 from sb3_gccp.progress import new_bar
 
@@ -277,7 +278,7 @@ def plot_scene(
     import matplotlib.pyplot as plt
 
     env = GCCPDeciderEnv(config=world, planner=frozen_planner(planner, world))
-    gccp = GCCPMask(predictor)
+    gccp = GCCPCheck().make_mask(predictor, world)
     fig, axes = plt.subplots(len(tasks), 2, figsize=(10, 5 * len(tasks)), squeeze=False)
     for i, (row, task) in enumerate(zip(axes, tasks, strict=True)):
         obs = _busy_scene(env, gccp, seed + SCENE_EPISODES * i, task, world.bev_extent / 2, decider)
