@@ -92,7 +92,7 @@ class GCCPCheck:
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
             None if fallback is None else float(fallback),
-            values.get("mask_vehicle_sizes", "simulator"),
+            values.get("mask_vehicle_sizes", cls.vehicle_sizes),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -130,7 +130,7 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     for key in ("mask_yield_margin", "mask_fallback_margin"):
         if values.get(key) is not None:
             require_non_negative(f"{where}{key}", values[key])
-    sizes = values.get("mask_vehicle_sizes", "simulator")
+    sizes = values.get("mask_vehicle_sizes", GCCPCheck.vehicle_sizes)
     if sizes not in VEHICLE_SIZES:
         expected = ", ".join(VEHICLE_SIZES)
         raise ValueError(f"{where}mask_vehicle_sizes must be one of {expected}, got {sizes!r}")
