@@ -7,7 +7,8 @@ Run: python benchmarks/env_speed.py [--steps 3000] [--spawn-probability 0.06]
 Last line: ``ratio <ours/stock>`` (goal: at most 0.5). Ours is also timed on SUMO traffic (``traffic: sumo``,
 the ``sumo`` extra), in the line ``sumo_ratio <sumo/builtin>`` (goal: at most 1.5), and, with the ``smarts``
 extra, in SMARTS (``simulator: smarts``): ``smarts_ratio <smarts/builtin>``, then where a SMARTS step goes and
-``smarts_observation_share <our observation / SMARTS's step>`` (goal: at most 0.2).
+``smarts_observation_share <our observation / SMARTS's step>`` (goal: at most 0.2); ``--smarts-routes
+waypoints`` times SMARTS with the routes from its waypoint paths.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import cProfile
 import pstats
 import time
 from importlib.util import find_spec
+from typing import Any
 
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers intersection-v2)
@@ -44,14 +46,20 @@ def median_step_ms(env: gym.Env, steps: int, seed: int, masks: bool = False) -> 
 
 
 def print_backend_speed(
-    args: argparse.Namespace, key: str, value: str, steps: int, blocks: int = 10
+    args: argparse.Namespace,
+    key: str,
+    value: str,
+    steps: int,
+    blocks: int = 10,
+    more: dict[str, Any] | None = None,
 ) -> dict[str, gym.Env]:
-    """Time GCCPPlanner-v0 on our world and with config ``key=value`` (SUMO's traffic, SMARTS) as ours is
-    timed above, in alternating blocks of steps so that a change of load on a shared machine hits both
-    alike; print the medians over the blocks and their ratio, ``<value>_ratio``. Return the envs, open."""
+    """Time GCCPPlanner-v0 on our world and with config ``key=value`` (SUMO's traffic, SMARTS; and the keys
+    ``more``) as ours is timed above, in alternating blocks of steps so that a change of load on a shared
+    machine hits both alike; print the medians over the blocks and their ratio, ``<value>_ratio``. Return
+    the envs, open."""
     envs = {
         name: gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability, **overrides)
-        for name, overrides in (("builtin", {}), (value, {key: value}))
+        for name, overrides in (("builtin", {}), (value, {key: value, **(more or {})}))
     }
     times: dict[str, list[float]] = {name: [] for name in envs}
     for block in range(blocks):
@@ -108,6 +116,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-masks", action="store_true", help="time ours without action_masks()")
     parser.add_argument("--smarts-steps", type=int, default=1000, help="steps of the SMARTS timing")
+    parser.add_argument(
+        "--smarts-routes",
+        choices=("layout", "waypoints"),
+        default=IntersectionConfig().smarts_routes,
+        help="the SMARTS env's smarts_routes (waypoints: asks SMARTS for its waypoint paths every step)",
+    )
     args = parser.parse_args()
     ours_env = gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability)
     stock_env = gym.make(
@@ -128,7 +142,9 @@ def main() -> None:
     for env in print_backend_speed(args, "traffic", "sumo", args.steps).values():
         env.close()
     if find_spec("smarts") is not None:
-        envs = print_backend_speed(args, "simulator", "smarts", args.smarts_steps)
+        envs = print_backend_speed(
+            args, "simulator", "smarts", args.smarts_steps, more={"smarts_routes": args.smarts_routes}
+        )
         print_smarts_split(envs["smarts"], args.smarts_steps, args.seed)
         for env in envs.values():
             env.close()

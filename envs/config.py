@@ -25,6 +25,7 @@ DT = 0.1
 TRAFFIC_BACKENDS = ("builtin", "sumo")
 """Who drives the other vehicles (config ``traffic``)."""
 SIMULATORS = ("builtin", "smarts")
+SMARTS_ROUTES = ("layout", "waypoints")
 """Who simulates the world (config ``simulator``)."""
 
 
@@ -136,6 +137,11 @@ class IntersectionConfig:
     """Under SMARTS, the bird's-eye view is SMARTS's drivable-area grid map (its camera sensor, as the paper's
     state), not drawn from our layout of the same map (they agree on about 99 % of the cells); false saves
     SMARTS's rendering."""
+    smarts_routes: str = "layout"
+    """Under SMARTS, which lane paths are the ego's routes: 'layout', our rule (every path of the task before
+    the stop line, the paths within a lane width after it), or 'waypoints', those SMARTS's waypoint paths
+    along the ego's mission run on (the paper's routes; inside the junction they also keep the task's
+    other lanes). The route points come from our layout either way: SMARTS's map is that layout."""
 
     # --- traffic ---------------------------------------------------------------------------------
     traffic: str = "builtin"
@@ -320,6 +326,10 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError(f"unknown simulator {config.simulator!r}: expected one of {', '.join(SIMULATORS)}")
     if config.simulator == "smarts":
         require_smarts_extra()
+    if config.smarts_routes not in SMARTS_ROUTES:
+        raise ValueError(
+            f"unknown smarts_routes {config.smarts_routes!r}: expected one of {', '.join(SMARTS_ROUTES)}"
+        )
     if config.ego_lane not in ("random", "task"):
         raise ValueError(f"ego_lane must be 'random' or 'task', got {config.ego_lane!r}")
     positive_ints = (

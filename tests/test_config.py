@@ -74,6 +74,7 @@ def test_replace_validates():
         ({"scripted_turn_speed": 0.0}, "scripted_turn_speed must be a positive number"),
         ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
         ({"smarts_grid_map": "no"}, "smarts_grid_map must be true or false"),
+        ({"smarts_routes": "lanes"}, "unknown smarts_routes 'lanes': expected one of layout, waypoints"),
         ({"wrong_exit_penalty": 0}, "wrong_exit_penalty must be true or false"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
         ({"spawn_probability": -0.1}, "spawn_probability"),

@@ -281,6 +281,61 @@ def test_the_bev_is_smarts_grid_map_and_agrees_with_our_layout():
         env.close()
 
 
+def drive_recording_routes(task: str, routes: str) -> list[tuple[list[int], list[int], float]]:
+    """Drive a task on an empty road with the scripted planner; every step's routes, our rule's routes and
+    the median offset of SMARTS's waypoint paths from the task's lane paths they run on [m]."""
+    from smarts.core.coordinates import Pose
+
+    from gccp_envs.scripted import ScriptedPlanner
+    from gccp_envs.smarts.world import ROUTE_LOOKAHEAD
+    from gccp_envs.sumo.network import to_sumo
+    from gccp_envs.world import IntersectionWorld
+
+    env = gym.make("GCCPFlat-v0", task=task, smarts_routes=routes, spawn_probability=0.0, **SMARTS)
+    steps = []
+    try:
+        obs, _ = env.reset(seed=4)
+        world = env.unwrapped.world  # type: ignore[attr-defined]
+        planner = ScriptedPlanner(world.config)
+        paths = np.array(world._task_paths)
+        for _ in range(200):
+            state = world.observation.ego_vehicle_state
+            waypoint_paths = world._simulation().road_map.waypoint_paths(
+                Pose.from_center(state.position, state.heading), ROUTE_LOOKAHEAD, route=world._mission_route
+            )
+            offsets = []
+            for waypoints in waypoint_paths:
+                points = to_sumo(np.array([w.pos for w in waypoints], float))
+                _, d = world.layout.paths.project(paths[:, None], points[None])
+                offsets.append(float(np.median(np.abs(d), axis=1).min()))
+            routes_now = list(world.ego_routes()[0])
+            ours = list(IntersectionWorld._find_routes(world)[0])
+            steps.append((routes_now, ours, min(offsets)))
+            obs, _, terminated, truncated, info = env.step(planner(obs, env.unwrapped.action_masks()))  # type: ignore[attr-defined]
+            if terminated or truncated:
+                assert info["is_success"]
+                return steps
+        raise AssertionError("the scripted planner did not finish the task")
+    finally:
+        env.close()
+
+
+@needs_smarts
+def test_routes_from_smarts_waypoint_paths_lie_on_our_lane_paths():
+    for task in ("left", "straight"):
+        steps = drive_recording_routes(task, "waypoints")
+        # SMARTS's waypoint paths along the mission run on our lane paths (its map is our layout).
+        assert max(offset for _, _, offset in steps) < 0.05
+        # Before the junction SMARTS offers the lanes our rule does.
+        assert steps[0][0] == steps[0][1]
+        if task == "left":  # one lane turns left: the same single route all the way
+            assert all(routes == ours == steps[0][0] for routes, ours, _ in steps)
+        else:  # in the junction SMARTS keeps both straight lanes, our rule only the ego's
+            assert any(len(routes) == 2 and len(ours) == 1 for routes, ours, _ in steps)
+    # With the layout's routes (the default) the world keeps our rule.
+    assert all(routes == ours for routes, ours, _ in drive_recording_routes("straight", "layout"))
+
+
 @needs_smarts
 def test_without_the_grid_map_the_bev_is_drawn_from_our_layout():
     env = gym.make("GCCPPlanner-v0", task="left", smarts_grid_map=False, **SMARTS)

@@ -11,8 +11,10 @@
   table the observation reads, each on the lane path nearest to it. Vehicles the ego first sees get a past
   at constant speed, as the ego does.
 - **The bird's-eye view** is SMARTS's drivable-area grid map around the ego, heading up
-  (``smarts_grid_map``; else drawn from our layout of the same map, as in our world). The routes and the
-  subgoals stay on our lane paths: SMARTS's map is our layout, built by ``netconvert``.
+  (``smarts_grid_map``; else drawn from our layout of the same map, as in our world).
+- **The routes** are lane paths of ours: with ``smarts_routes: waypoints`` those SMARTS's waypoint paths
+  along the ego's mission run on, else chosen by our rule. Their points and the subgoals come from our
+  layout either way: SMARTS's map is that layout, built by ``netconvert``.
 - **Outcomes** are SMARTS's events: a collision, off road, the goal (the task's exit, our test) reached.
   A wrong exit is ours (SMARTS has no such event). SMARTS ends nothing else: no off-route, wrong-way or
   not-moving ends, no step limit (``duration`` truncates, as in our world).
@@ -38,7 +40,7 @@ from smarts.core.agent_interface import (
     NeighborhoodVehicles,
 )
 from smarts.core.controllers import ActionSpaceType
-from smarts.core.coordinates import Heading, Point
+from smarts.core.coordinates import Heading, Point, Pose
 from smarts.core.plan import NavigationMission, PositionalGoal, Start
 from smarts.core.scenario import Scenario
 from smarts.core.smarts import SMARTS
@@ -58,6 +60,9 @@ from gccp_envs.world import IntersectionWorld, StepOutcome
 NEIGHBOURHOOD_MARGIN = 15.0
 """Metres beyond ``observation_radius`` within which SMARTS reports other vehicles, so that a neighbour of
 a decision stays in the table for the T_f steps of its ground-truth future."""
+ROUTE_LOOKAHEAD = 10
+"""Waypoints (1 m apart) of each of SMARTS's waypoint paths read to tell which of our lane paths it runs on
+(``smarts_routes: waypoints``)."""
 HEADING_WEIGHT = 2.0
 """Metres of lateral offset one radian of heading difference counts as, when a vehicle's lane path is
 chosen (so that a car on the junction's crossing lanes gets the path it drives along)."""
@@ -158,6 +163,7 @@ class SmartsWorld(IntersectionWorld):
         """Traffic variation of the current episode."""
         self.observation: Any = None
         """SMARTS's observation of the ego at the current step."""
+        self._mission_route: Any = None
 
     def _make_traffic(self) -> TrafficTable:
         return SmartsTraffic(self.layout, self.config, self.rng)
@@ -201,6 +207,7 @@ class SmartsWorld(IntersectionWorld):
         """End SMARTS and its SUMO, and remove SUMO's logs."""
         if self._smarts is not None:
             smarts, self._smarts = self._smarts, None
+            self._mission_route = None
             smarts.destroy()
         if self._log_dir is not None:
             shutil.rmtree(self._log_dir, ignore_errors=True)
@@ -224,12 +231,51 @@ class SmartsWorld(IntersectionWorld):
             simulation = self._simulation()
             random.seed(sumo_seed)  # SMARTS draws SUMO's --seed from Python's random at every reset
             observation = simulation.reset(self._scenario(start))[EGO_ID]
+            self._mission_route = self._route_of_mission(simulation)
         self.steps = 0
         self._read(observation)
         self.ego.speed = self._start_speed(path, s, speed)
         self._record()
         self._backfill_history(np.concatenate([[self.ego_slot], self.traffic.indices]).astype(np.int64))
         self._candidates = self._routes = None
+
+    @staticmethod
+    def _route_of_mission(simulation: Any) -> Any:
+        """The route SMARTS's planner made for the ego's mission (its roads)."""
+        vehicle_id = simulation.vehicle_index.vehicle_ids_by_owner_id(EGO_ID)[0]
+        sensor_state = simulation.sensor_manager.sensor_state_for_actor_id(vehicle_id)
+        return sensor_state.get_plan(simulation.road_map).route
+
+    def _find_routes(self) -> tuple[list[int], FloatArray]:
+        """The ego's routes (``smarts_routes``), nearest first, and its arc length on each.
+
+        With 'waypoints', the task's lane paths that SMARTS's waypoint paths along the mission run on: a
+        waypoint path runs on the lane path its first ``ROUTE_LOOKAHEAD`` metres stay within half a lane
+        width of on average. Our rule's routes when none does (the ego has left the mission's roads).
+        """
+        if self.config.smarts_routes != "waypoints" or self._mission_route is None:
+            return super()._find_routes()
+        layout = self.layout
+        paths = np.array(self._task_paths)
+        state = self.observation.ego_vehicle_state
+        pose = Pose.from_center(state.position, state.heading)
+        waypoint_paths = self._simulation().road_map.waypoint_paths(
+            pose, ROUTE_LOOKAHEAD, route=self._mission_route
+        )
+        matched: list[int] = []
+        for waypoints in waypoint_paths:
+            points = to_sumo(np.array([w.pos for w in waypoints], float))
+            _, d = layout.paths.project(paths[:, None], points[None])
+            offset = np.abs(d).mean(axis=1)
+            best = int(np.argmin(offset))
+            if offset[best] < self.config.lane_width / 2.0 and paths[best] not in matched:
+                matched.append(int(paths[best]))
+        if not matched:
+            return super()._find_routes()
+        routes = np.array(matched)
+        s, d = layout.paths.project(routes, np.array([self.ego.x, self.ego.y]))
+        keep = np.argsort(np.abs(d), kind="stable")[: self.config.num_routes]
+        return [int(routes[k]) for k in keep], s[keep]
 
     def _scenario(self, start: FloatArray) -> Any:
         """The task's scenario with flow ``k`` and the ego's mission from ``start`` to the task's exit."""
