@@ -105,6 +105,8 @@ class IntersectionWorld:
         self._task_paths: list[int] = []
         self._candidates: FloatArray | None = None
         self._routes: tuple[list[int], FloatArray] | None = None
+        self._mask: tuple[tuple[float, ...], NDArray[np.bool_]] | None = None
+        """The ego's (x, y, heading, speed) and its action mask, computed once per pose."""
 
     def _make_traffic(self) -> TrafficTable:
         return make_traffic(self.layout, self.config, self.rng)
@@ -251,8 +253,16 @@ class IntersectionWorld:
 
         An action is allowed if the ego is on the road after it and, for ``mask_lookahead - 1`` more
         steps, some action held all along keeps it there. If no action passes, the actions that keep
-        it on the road for the next step are allowed; if none does either, all of them.
+        it on the road for the next step are allowed; if none does either, all of them. Computed once
+        per pose of the ego (an env's wrapper and its policy may both ask at the same step).
         """
+        ego = (self.ego.x, self.ego.y, self.ego.heading, self.ego.speed)
+        if self._mask is None or self._mask[0] != ego:
+            self._mask = (ego, self._road_keeping_mask())
+        return self._mask[1].copy()
+
+    def _road_keeping_mask(self) -> NDArray[np.bool_]:
+        """:meth:`action_mask`, computed."""
         motion, n = self.motion, len(self.motion.curvature)
         next_states = [motion.step(self.ego, action) for action in range(n)]
         next_step = self._on_road(np.array([(s.x, s.y, s.heading) for s in next_states]))

@@ -176,6 +176,25 @@ def test_action_mask_never_all_false(make_world):
     np.testing.assert_array_equal(world.action_mask(), np.ones(6, bool))
 
 
+def test_action_mask_is_computed_once_per_pose_of_the_ego(make_world, monkeypatch):
+    world = make_world()
+    state = (6.0, 50.0, -np.pi / 2 + 0.4, 8.0)  # at the kerb: only a quick left turn is allowed
+    place_ego(world, *state)
+    calls = []
+    compute = world._road_keeping_mask
+    monkeypatch.setattr(world, "_road_keeping_mask", lambda: calls.append(1) or compute())
+    first = world.action_mask()
+    first[:] = True  # the caller's copy: the next call is not changed by it
+    np.testing.assert_array_equal(world.action_mask(), [False, False, False, False, True, False])
+    assert len(calls) == 1
+    world.ego.heading = -np.pi / 2  # a new pose (also when changed in place): computed again
+    assert world.action_mask().all()
+    assert len(calls) == 2
+    world.step(EgoAction.KEEP_DIRECTION)
+    world.action_mask()
+    assert len(calls) == 3
+
+
 @given(st.floats(-90, 90), st.floats(-90, 90), st.floats(-np.pi, np.pi), st.floats(0.0, 12.0))
 def test_action_mask_is_never_empty(x, y, heading, speed):
     world = _shared_world()
