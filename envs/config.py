@@ -25,8 +25,9 @@ DT = 0.1
 TRAFFIC_BACKENDS = ("builtin", "sumo")
 """Who drives the other vehicles (config ``traffic``)."""
 SIMULATORS = ("builtin", "smarts")
-SMARTS_ROUTES = ("layout", "waypoints")
 """Who simulates the world (config ``simulator``)."""
+SMARTS_ROUTES = ("layout", "waypoints")
+"""Who chooses the ego's routes under SMARTS (config ``smarts_routes``)."""
 
 
 def parse_tasks(text: str) -> list[str]:

@@ -283,7 +283,7 @@ def test_the_bev_is_smarts_grid_map_and_agrees_with_our_layout():
 
 def drive_recording_routes(task: str, routes: str) -> list[tuple[list[int], list[int], float]]:
     """Drive a task on an empty road with the scripted planner; every step's routes, our rule's routes and
-    the median offset of SMARTS's waypoint paths from the task's lane paths they run on [m]."""
+    the largest median offset of SMARTS's waypoint paths from the task's lane paths they run on [m]."""
     from smarts.core.coordinates import Pose
 
     from gccp_envs.scripted import ScriptedPlanner
@@ -303,14 +303,16 @@ def drive_recording_routes(task: str, routes: str) -> list[tuple[list[int], list
             waypoint_paths = world._simulation().road_map.waypoint_paths(
                 Pose.from_center(state.position, state.heading), ROUTE_LOOKAHEAD, route=world._mission_route
             )
-            offsets = []
+            offsets = [0.0]
             for waypoints in waypoint_paths:
                 points = to_sumo(np.array([w.pos for w in waypoints], float))
                 _, d = world.layout.paths.project(paths[:, None], points[None])
-                offsets.append(float(np.median(np.abs(d), axis=1).min()))
+                nearest = int(np.argmin(np.abs(d).mean(axis=1)))
+                if np.abs(d[nearest]).mean() < world.config.lane_width / 2.0:  # a path it runs on
+                    offsets.append(float(np.median(np.abs(d[nearest]))))
             routes_now = list(world.ego_routes()[0])
             ours = list(IntersectionWorld._find_routes(world)[0])
-            steps.append((routes_now, ours, min(offsets)))
+            steps.append((routes_now, ours, max(offsets)))
             obs, _, terminated, truncated, info = env.step(planner(obs, env.unwrapped.action_masks()))  # type: ignore[attr-defined]
             if terminated or truncated:
                 assert info["is_success"]
