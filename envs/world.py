@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -289,13 +290,27 @@ class IntersectionWorld:
         Before the stop line every path of the task is a route (a lane change may lead to it);
         after it, only paths within a lane width of the ego.
         """
-        cfg, layout = self.config, self.layout
-        paths = np.array(self._task_paths)
-        s, d = layout.paths.project(paths, np.array([self.ego.x, self.ego.y]))
+        stop_s, lane_width = self.layout.stop_s, self.config.lane_width
+        return self._nearest_routes(self._task_paths, lambda s, d: (s < stop_s) | (np.abs(d) < lane_width))
+
+    def _nearest_routes(
+        self,
+        paths: list[int],
+        keep: Callable[[FloatArray, FloatArray], NDArray[np.bool_]] | None = None,
+    ) -> tuple[list[int], FloatArray]:
+        """Up to ``num_routes`` of ``paths``, nearest the ego first, and the ego's arc length on each.
+
+        :param keep: which paths may be routes, from the ego's arc length and lateral offset on each
+            (the nearest path if none may); default all
+        """
+        lane_paths = np.array(paths)
+        s, d = self.layout.paths.project(lane_paths, np.array([self.ego.x, self.ego.y]))
         order = np.argsort(np.abs(d))
-        keep = [k for k in order if s[k] < layout.stop_s or abs(d[k]) < cfg.lane_width] or [order[0]]
-        keep = keep[: cfg.num_routes]
-        return [int(paths[k]) for k in keep], s[keep]
+        if keep is not None:
+            kept = order[keep(s[order], d[order])]
+            order = kept if len(kept) else order[:1]
+        order = order[: self.config.num_routes]
+        return [int(lane_paths[k]) for k in order], s[order]
 
     def subgoal_candidates(self) -> FloatArray:
         """The N subgoal candidates (x, y, heading) in world coordinates, cached per step."""

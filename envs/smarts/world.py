@@ -272,10 +272,7 @@ class SmartsWorld(IntersectionWorld):
                 matched.append(int(paths[best]))
         if not matched:
             return super()._find_routes()
-        routes = np.array(matched)
-        s, d = layout.paths.project(routes, np.array([self.ego.x, self.ego.y]))
-        keep = np.argsort(np.abs(d), kind="stable")[: self.config.num_routes]
-        return [int(routes[k]) for k in keep], s[keep]
+        return self._nearest_routes(matched)
 
     def _scenario(self, start: FloatArray) -> Any:
         """The task's scenario with flow ``k`` and the ego's mission from ``start`` to the task's exit."""
