@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -16,8 +17,15 @@ from helpers import reproduce
 from sb3_gccp.cli import main
 from sb3_gccp.hyperparams import default_config_file, load_hyperparams
 from sb3_gccp.reproduce.methods import METHODS, TABLE_1, TABLE_2
-from sb3_gccp.reproduce.plan import PRESETS, mask_after_episodes, method_settings, planner_settings
+from sb3_gccp.reproduce.plan import (
+    PRESETS,
+    check_settings,
+    mask_after_episodes,
+    method_settings,
+    planner_settings,
+)
 from sb3_gccp.reproduce.report import aggregate, format_results_table
+from sb3_gccp.training.baselines import MASKS_KEY
 
 FIGURES = ("fig5_baselines", "fig6_ablations", "fig7_predictor_errors", "fig8_predictions")
 
@@ -197,6 +205,21 @@ def test_paper_preset_configs_change_only_the_budget_and_the_gccp_variant():
             entry["policy_kwargs"]["features_extractor_class"] == "sb3_gccp.policies.PlannerFeaturesExtractor"
         )
     assert planner_settings(paper)["n_timesteps"] == 100_000
+
+
+def test_tuned_baseline_entries_are_masked_and_change_only_their_tuned_keys():
+    paper = PRESETS["paper"]
+    for file in sorted((default_config_file("dqn.yml").parent / "tuned").glob("*.yml")):
+        method = METHODS[file.stem]
+        entry = method_settings(method, paper, file)
+        check_settings(method, entry)  # what `reproduce --config` checks before any training
+        header = " ".join(line[2:] for line in file.read_text().splitlines() if line.startswith("# "))
+        tuned_keys = re.search(r"Tuned keys: (.*?)\. Used", header)
+        assert tuned_keys is not None, file
+        tuned = {key.strip().split(".")[0] for key in tuned_keys.group(1).split(",")}
+        shipped = method_settings(method, paper)
+        assert entry[MASKS_KEY] is True and entry["n_timesteps"] == shipped["n_timesteps"]
+        assert {key for key in {*entry, *shipped} if entry.get(key) != shipped.get(key)} <= tuned, file
 
 
 def test_quick_preset_shrinks_every_network_and_merges_dotted_overrides():
