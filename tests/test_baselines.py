@@ -51,6 +51,8 @@ def test_an_interrupted_baseline_continues_from_its_checkpoint(tmp_path, zoo_fil
     assert [row["episode"] for row in rows] == [1, 2, 3, 4, 5, 6] and rows[:4] == checkpoint
     assert rows[4]["timesteps"] > saved.num_timesteps  # the step count went on from the checkpoint
     assert baseline_algorithm("dqn").load(run / MODEL_FILE).num_timesteps == rows[-1]["timesteps"]
+    clock = [row["wall_clock_s"] for row in rows]  # the resumed run's clock goes on from the checkpoint's
+    assert clock[0] > 0 and clock == sorted(clock) and clock[4] >= checkpoint[-1]["wall_clock_s"]
 
 
 def test_resume_without_a_checkpoint_is_refused(tmp_path, zoo_file):

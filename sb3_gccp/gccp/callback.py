@@ -43,7 +43,7 @@ from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors
 from sb3_gccp.progress import new_bar
 from sb3_gccp.training.checkpoints import Checkpoint, Writer, save_checkpoint
-from sb3_gccp.training.episodes import episode_row, read_episodes, write_episodes
+from sb3_gccp.training.episodes import TrainingClock, episode_row, read_episodes, write_episodes
 
 STATE_FILE = "gccp_state.pt"
 """The callback's counters and the predictor's optimiser, in a checkpoint folder."""
@@ -94,6 +94,7 @@ class GCCPCallback(BaseCallback):
         self.episodes = 0
         self.masks_on = False
         self.history: list[dict[str, Any]] = []
+        self._clock = TrainingClock()
         self.run_dir = run_dir
         self._checkpointed_at = 0
         self._staged: list[list[tuple[Any, ...]]] = []
@@ -163,7 +164,7 @@ class GCCPCallback(BaseCallback):
             self.buffer.end_episode()
             self._losses.append(self.trainer.on_episode_end(self.buffer, self.rng))
         self.episodes += 1
-        row = episode_row(info, self.episodes, self.num_timesteps, self.masks_on)
+        row = episode_row(info, self.episodes, self.num_timesteps, self.masks_on, self._clock())
         self.history.append(row)
         self._recent.append(row)
         if self._bar is not None:
@@ -219,5 +220,6 @@ class GCCPCallback(BaseCallback):
             self.trainer.gradient_steps = int(state["gradient_steps"])
         self.rng.bit_generator.state = state["rng"]
         self.history = read_episodes(checkpoint.file(EPISODES_FILE))
+        self._clock = TrainingClock(self.history)
         self._recent.extend(self.history[-100:])
         self._checkpointed_at = self.episodes

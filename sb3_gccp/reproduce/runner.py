@@ -132,12 +132,14 @@ def train_method_once(
     else:
         _train_baseline(plan, method, seed, run_dir, label)
     history = read_episodes(run_dir / EPISODES_FILE)
+    # The episode log's clock also counts the processes a resumed run ran in before this one.
+    trained = history[-1]["wall_clock_s"] if history else None
     record = {
         "method": method.name,
         "seed": seed,
         "episodes": len(history),
         "timesteps": history[-1]["timesteps"] if history else 0,
-        "wall_clock_s": round(time.perf_counter() - start, 1),
+        "wall_clock_s": round(time.perf_counter() - start if trained is None else trained, 1),
     }
     _write_record(run_dir / TRAINING_FILE, record)
     print(f"{label}: trained {record['episodes']} episodes in {record['wall_clock_s']:.0f} s", flush=True)

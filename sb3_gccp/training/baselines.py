@@ -7,7 +7,7 @@ the motion-planner's networks, named in its zoo file (``zoo_configs/dqn.yml``, `
     config.yml      the resolved zoo entry
     baseline.yml    the algorithm's name and the model file (``sb3_gccp evaluate --model RUN`` reads it)
     model.zip       the trained model (``<Algorithm>.load``)
-    episodes.csv    one row per training episode, in the layout of the decider's (task, success, crash)
+    episodes.csv    one row per training episode, as the decider's (task, success, crash, wall clock)
     monitor/, tb/   Monitor CSVs and TensorBoard logs
     checkpoints/    every ``save_every_episodes``: model.zip, replay_buffer.pkl (off-policy
                     algorithms), episodes.csv; ``train_baseline(..., resume=True)`` continues from them
@@ -44,7 +44,7 @@ from sb3_gccp.evaluation import Policy
 from sb3_gccp.hyperparams import check_keys, load_hyperparams, read_yaml_mapping, resolve_class
 from sb3_gccp.progress import new_bar
 from sb3_gccp.safe_loading import PolicyKind, file_in_folder, load_policy
-from sb3_gccp.training.episodes import episode_row, read_episodes, write_episodes
+from sb3_gccp.training.episodes import TrainingClock, episode_row, read_episodes, write_episodes
 from sb3_gccp.training.run_folder import algorithm_kwargs, make_run_env
 
 BASELINES = {
@@ -129,6 +129,7 @@ class EpisodeRecorder(BaseCallback):
         self.checkpoint_dir = checkpoint_dir
         self.save_every = save_every
         self.history: list[dict[str, Any]] = list(history or [])
+        self._clock = TrainingClock(self.history)
         self._bar: tqdm | None = None
         self._checkpoint_due = False
 
@@ -144,7 +145,8 @@ class EpisodeRecorder(BaseCallback):
     def _on_step(self) -> bool:
         for info, done in zip(self.locals["infos"], self.locals["dones"], strict=True):
             if done and len(self.history) < self.budget:
-                self.history.append(episode_row(info, len(self.history) + 1, self.num_timesteps, False))
+                row = episode_row(info, len(self.history) + 1, self.num_timesteps, False, self._clock())
+                self.history.append(row)
                 if self._bar is not None:
                     self._bar.update()
                 self._checkpoint_due |= len(self.history) % self.save_every == 0

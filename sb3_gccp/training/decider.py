@@ -8,7 +8,7 @@ Run folder (``<log_folder>/decider/GCCPDecider-v0_<seed>_<time>/``), complete fo
     decider.zip                         the trained decision-maker
     predictor.pt                        the GCCP predictor trained on the side (learned variants)
     hierarchy.yml                       what ``sb3_gccp evaluate`` loads: files, GCCP variant, world
-    episodes.csv                        one row per training episode (task, success, crash, masks on)
+    episodes.csv                        per training episode: task, success, crash, masks on, clock
     training_curve.png, metrics.json    success and collision rate per episode; where it passed 70 %
     monitor/, tb/                       Monitor CSVs and TensorBoard logs
     checkpoints/                        the two newest checkpoints: decider.zip, predictor, optimiser,
