@@ -210,6 +210,24 @@ def test_dagger_data_are_the_drivers_states_with_the_experts_actions():
     assert merged.agreement == (data.agreement * 40 + 10) / 50
 
 
+def test_expert_data_written_into_given_rows_are_the_same_and_leave_the_other_rows_alone():
+    fresh = collect_expert(WORLD, 30, seed=4, expert="search")
+    env = gym.make("GCCPPlanner-v0", config=WORLD)
+    room = ExpertData.empty(env.observation_space, env.action_space, 50)
+    room.actions[:] = -1
+    filled = collect_expert(WORLD, 30, seed=4, expert="search", out=room.rows(10, 40))
+    for key, value in fresh.obs.items():
+        np.testing.assert_array_equal(room.obs[key][10:40], value)
+        assert room.obs[key].dtype == value.dtype
+    np.testing.assert_array_equal(room.masks[10:40], fresh.masks)
+    np.testing.assert_array_equal(room.returns[10:40], fresh.returns)
+    assert room.actions[10:40].tolist() == fresh.actions.tolist()
+    assert (room.actions[:10] == -1).all() and (room.actions[40:] == -1).all()
+    assert (filled.episodes, filled.agreement) == (fresh.episodes, fresh.agreement)
+    with pytest.raises(ValueError, match="out holds 30 steps, not 20"):
+        collect_expert(WORLD, 20, seed=4, out=room.rows(10, 40))
+
+
 def test_zero_ppo_steps_without_imitation_and_a_bad_imitation_key_are_one_line_errors(tmp_path):
     entry = {**TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"], "n_timesteps": 0}
     result = _train(tmp_path, entry)

@@ -11,7 +11,7 @@ from helpers import path_pose, place_ego, place_ego_on_path
 
 from gccp_envs.action import EgoAction
 from gccp_envs.config import IntersectionConfig
-from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
+from gccp_envs.scripted import ROLLOUT_CACHE_SIZE, FarthestSubgoalDecider, ScriptedPlanner, SearchPlanner
 
 PLANNER = ScriptedPlanner(IntersectionConfig())
 
@@ -174,6 +174,17 @@ def test_search_planner_rollout_is_the_egos_kinematics():
             state = motion.step(state, int(action))
             np.testing.assert_allclose(poses[row, step, :2], (state.x, state.y), atol=1e-9)
             assert abs(np.angle(np.exp(1j * (poses[row, step, 2] - state.heading)))) < 1e-9
+
+
+def test_search_planner_keeps_its_recently_used_rollouts_up_to_the_cache_size():
+    planner = SearchPlanner(IntersectionConfig())
+    first = planner.rollout(0.0)
+    for k in range(ROLLOUT_CACHE_SIZE + 10):
+        planner.rollout(1.0 + 0.01 * k)
+        assert planner.rollout(0.0) is first  # used at every step: never the one dropped
+    assert len(planner._rollouts) == ROLLOUT_CACHE_SIZE
+    newest = round(1.0 + 0.01 * (ROLLOUT_CACHE_SIZE + 9), 6)
+    assert 1.0 not in planner._rollouts and newest in planner._rollouts
 
 
 @pytest.mark.parametrize(
