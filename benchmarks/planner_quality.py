@@ -227,10 +227,24 @@ def main() -> None:
         action="store_true",
         help="also search every drawn subgoal's action sequences: the reach no planner can beat",
     )
+    parser.add_argument(
+        "--max-lateral-acceleration",
+        type=float,
+        default=None,
+        help="with --model search: the search planner's lateral acceleration limit [m/s²] (the planner "
+        "stage's imitation.expert_kwargs)",
+    )
     args = parser.parse_args()
+    if args.max_lateral_acceleration is not None and args.model != "search":
+        parser.error("--max-lateral-acceleration applies to --model search only")
     th.set_num_threads(1)
+    kwargs = (
+        {}
+        if args.max_lateral_acceleration is None
+        else {"max_lateral_acceleration": args.max_lateral_acceleration}
+    )
     planner: Planner = (
-        EXPERTS[args.model](IntersectionConfig())
+        EXPERTS[args.model](IntersectionConfig(), **kwargs)
         if args.model in EXPERTS
         else load_planner(args.model, IntersectionConfig())
     )
@@ -240,7 +254,8 @@ def main() -> None:
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
-    print(f"model {args.model}, {args.episodes} episodes per task, seed {args.seed}")
+    limit = "" if not kwargs else f" (max_lateral_acceleration {args.max_lateral_acceleration})"
+    print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}")
     print(
         f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "
         f"{args.hold_steps} steps (default traffic)"

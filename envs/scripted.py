@@ -108,9 +108,16 @@ class SearchPlanner:
         radius_share: float = 0.75,
         heading_share: float = 0.8,
         hold_distance: float | None = None,
+        max_lateral_acceleration: float | None = None,
     ) -> None:
+        if max_lateral_acceleration is not None and not max_lateral_acceleration > 0:
+            raise ValueError(f"max_lateral_acceleration must be positive, got {max_lateral_acceleration!r}")
         self.config = config
         self.horizon = horizon
+        self.max_lateral_acceleration = max_lateral_acceleration
+        """Lateral acceleration [m/s²] no step of a chosen sequence may exceed (speed² x the action's
+        curvature), unless no allowed sequence keeps within it: a turn too tight for the speed is entered
+        only after braking. None: no limit."""
         self.hold_distance = config.subgoal_reach_radius if hold_distance is None else hold_distance
         """A goal on the ego's lane at most this far ahead [m] is a hold (a subgoal drawn to drive to lies
         farther: ``GCCPPlanner-v0`` draws them beyond the reach radius): of the sequences that reach it
@@ -229,12 +236,15 @@ class SearchPlanner:
         # (short lane changes, mostly) still beats ending on the goal's line.
         first = self.sequences[:, 0]
         usable = allowed[first] | ~allowed.any()
+        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
+        speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
+        if self.max_lateral_acceleration is not None:
+            gentle = usable & self._gentle(speed_after)
+            usable = gentle if gentle.any() else usable
         if not (hit & usable[:, None]).any():
             hit = (miss <= cfg.subgoal_reach_radius) & (turn <= cfg.subgoal_reach_heading) & before_off
         reached = hit.any(1)
         arrival = hit.argmax(1)
-        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
-        speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
         if gx <= self.hold_distance and abs(gy) <= self.radius and (reached & usable).any():
             # A hold on the ego's lane: of the sequences that reach it soonest, the one that ends slowest.
             cost = np.where(reached & usable, arrival + HOLD_SPEED_COST * speed_after[:, -1], np.inf)
@@ -253,6 +263,11 @@ class SearchPlanner:
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
         return int(first[np.argmin(np.where(usable, cost, np.inf))])
+
+    def _gentle(self, speed_after: np.ndarray) -> np.ndarray:
+        """Sequences whose every step keeps within :attr:`max_lateral_acceleration`, (S,)."""
+        curvature = np.abs(self.motion.curvature[self.sequences])
+        return np.all(speed_after**2 * curvature <= self.max_lateral_acceleration, axis=1)
 
     def _slowest_on_road(
         self, poses: np.ndarray, on_road: np.ndarray, goal: np.ndarray, allowed: np.ndarray

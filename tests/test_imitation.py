@@ -46,6 +46,15 @@ def test_search_expert_data_are_the_search_planners_actions():
     assert SearchPlanner(WORLD)(first, data.masks[0]) == data.actions[0]
 
 
+def test_the_expert_takes_its_keyword_arguments():
+    strict = {"max_lateral_acceleration": 0.5}
+    data = collect_expert(WORLD, 30, seed=5, expert="search", expert_kwargs=strict)
+    states = [{key: value[k] for key, value in data.obs.items()} for k in range(30)]
+    limited, free = SearchPlanner(WORLD, **strict), SearchPlanner(WORLD)
+    assert [limited(obs, data.masks[k]) for k, obs in enumerate(states)] == list(data.actions)
+    assert [free(obs, data.masks[k]) for k, obs in enumerate(states)] != list(data.actions)
+
+
 def test_cloning_makes_the_policy_choose_the_experts_actions():
     data = collect_expert(WORLD, 200, seed=0)
     env = gym.make("GCCPPlanner-v0", config=WORLD)
@@ -137,6 +146,12 @@ def test_the_cloning_term_steps_after_each_ppo_update_and_pulls_towards_the_expe
         ({"learning_rate": -1.0}, "imitation.learning_rate must be a positive number"),
         ({"expert_step": 10}, "expert_step"),
         ({"expert": "human"}, "imitation.expert must be one of scripted, search, got 'human'"),
+        ({"expert": "search", "expert_kwargs": {"speed": 1}}, "expert_kwargs for expert 'search'.*'speed'"),
+        ({"expert": "search", "expert_kwargs": [1]}, "imitation.expert_kwargs must be a map"),
+        (
+            {"expert": "search", "expert_kwargs": {"max_lateral_acceleration": 0}},
+            "max_lateral_acceleration must be positive, got 0",
+        ),
         ({"dagger_rounds": -1}, "imitation.dagger_rounds must be a non-negative integer, got -1"),
         ({"dagger_steps": 0}, "imitation.dagger_steps must be a positive integer, got 0"),
         ({"dagger_epochs": 0}, "imitation.dagger_epochs must be a positive integer, got 0"),

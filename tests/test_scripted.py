@@ -250,6 +250,32 @@ def test_search_planner_drives_off_from_a_standstill_for_a_goal_out_of_reach(goa
     assert np.hypot(state.x, state.y) > 1.0
 
 
+def test_search_planner_with_a_lateral_acceleration_limit_brakes_before_a_tight_turn():
+    # A right turn of radius 7 m ahead at cruise speed: unlimited, the planner holds 8 m/s into it and
+    # takes quick turns (10.7 m/s² at 8 m/s); limited to SUMO's 5.5 m/s², it brakes first.
+    from gccp_envs.action import EgoMotion, EgoState
+    from gccp_envs.geometry import poses_to_frame
+
+    config = IntersectionConfig()
+    motion, goal = EgoMotion(config), np.array([14.0, 7.0, np.pi / 2])
+    peaks = {}
+    for limit in (None, 5.5):
+        planner, state, peak = (
+            SearchPlanner(config, max_lateral_acceleration=limit),
+            EgoState(0, 0, 0, 8.0),
+            0.0,
+        )
+        for _ in range(25):
+            local = poses_to_frame(goal, np.array([state.x, state.y]), state.heading)
+            action = planner(planner_obs(local, state.speed))
+            nxt = motion.step(state, action)
+            peak = max(peak, ((state.speed + nxt.speed) / 2) ** 2 * abs(motion.curvature[action]))
+            state = nxt
+        peaks[limit] = peak
+    assert peaks[None] > 8.0
+    assert peaks[5.5] <= 5.5 + 1e-9
+
+
 def drive_search_planner(goal, speed, steps=30):
     """Steps until the search planner, driving the ego's kinematics from the origin, reaches ``goal``
     as the env counts it (None if it does not within ``steps``)."""

@@ -20,7 +20,7 @@ which adds the demonstrations' likelihood to the policy gradient.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,9 @@ class ImitationSettings:
     expert: str = "scripted"
     """The planner to clone: 'scripted' (pure pursuit, :class:`ScriptedPlanner`) or 'search' (earliest
     arrival over an action-sequence library, :class:`SearchPlanner`)."""
+    expert_kwargs: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments of the expert's class beside the world config (for the search planner, e.g.
+    ``max_lateral_acceleration``)."""
     expert_steps: int = 40_000
     """Planner-env steps the expert drives to make the data set (one env, seeded episodes)."""
     epochs: int = 4
@@ -81,6 +84,12 @@ class ImitationSettings:
     def __post_init__(self) -> None:
         if self.expert not in EXPERTS:
             raise ValueError(f"imitation.expert must be one of {', '.join(EXPERTS)}, got {self.expert!r}")
+        if not isinstance(self.expert_kwargs, Mapping):
+            raise ValueError(f"imitation.expert_kwargs must be a map, got {self.expert_kwargs!r}")
+        try:  # made once with the default world, so that a bad argument fails here and not mid-stage
+            EXPERTS[self.expert](IntersectionConfig(), **self.expert_kwargs)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"imitation.expert_kwargs for expert {self.expert!r}: {error}") from None
         for name in ("expert_steps", "epochs", "batch_size", "dagger_steps"):
             require_int(f"imitation.{name}", getattr(self, name))
         if self.dagger_epochs is not None:
@@ -211,6 +220,7 @@ def collect_expert(
     driver: Driver | None = None,
     gamma: float = 0.99,
     out: ExpertData | None = None,
+    expert_kwargs: Mapping[str, Any] | None = None,
 ) -> ExpertData:
     """Label ``steps`` steps of ``GCCPPlanner-v0`` (episodes seeded from ``seed`` on) with an expert
     planner's actions.
@@ -219,10 +229,11 @@ def collect_expert(
     :param driver: who drives (DAgger: the cloned policy); default the expert itself
     :param gamma: discount of the returns (the episode cut off by ``steps`` counts as ended there)
     :param out: where to write the steps (``steps`` rows, see :meth:`ExpertData.rows`); default new arrays
+    :param expert_kwargs: keyword arguments of the expert's class beside the world config
     :return: the states visited, with the expert's actions
     """
     env = GCCPPlannerEnv(world)
-    label = EXPERTS[expert](env.config)
+    label = EXPERTS[expert](env.config, **(expert_kwargs or {}))
     data = ExpertData.empty(env.observation_space, env.action_space, steps) if out is None else out
     if len(data.actions) != steps:
         raise ValueError(f"out holds {len(data.actions)} steps, not {steps}")
@@ -392,7 +403,14 @@ def imitate(
         model.observation_space, model.action_space, filled + settings.dagger_rounds * settings.dagger_steps
     )
     data = collect_expert(
-        world, filled, seed, progress, settings.expert, gamma=gamma, out=room.rows(0, filled)
+        world,
+        filled,
+        seed,
+        progress,
+        settings.expert,
+        gamma=gamma,
+        out=room.rows(0, filled),
+        expert_kwargs=settings.expert_kwargs,
     )
     record: dict[str, Any] = {
         "settings": settings.to_dict(),
@@ -411,6 +429,7 @@ def imitate(
             driver=policy_driver(model),
             gamma=gamma,
             out=room.rows(filled, filled + settings.dagger_steps),
+            expert_kwargs=settings.expert_kwargs,
         )
         filled += settings.dagger_steps
         data = replace(
