@@ -145,6 +145,8 @@ class SearchPlanner:
         ]
         self.sequences = np.concatenate([pairs, np.array(rows)]).astype(np.int64)
         """(S, horizon) actions of the library."""
+        self._turn_curvature = np.abs(self.motion.curvature[self.sequences])
+        """(S, horizon) curvature [1/m] of each step of the library, for the lateral acceleration limit."""
         self._rollouts: OrderedDict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
 
     def rollout(self, speed: float) -> np.ndarray:
@@ -266,8 +268,7 @@ class SearchPlanner:
 
     def _gentle(self, speed_after: np.ndarray) -> np.ndarray:
         """Sequences whose every step keeps within :attr:`max_lateral_acceleration`, (S,)."""
-        curvature = np.abs(self.motion.curvature[self.sequences])
-        return np.all(speed_after**2 * curvature <= self.max_lateral_acceleration, axis=1)
+        return np.all(speed_after**2 * self._turn_curvature <= self.max_lateral_acceleration, axis=1)
 
     def _slowest_on_road(
         self, poses: np.ndarray, on_road: np.ndarray, goal: np.ndarray, allowed: np.ndarray
