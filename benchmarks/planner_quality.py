@@ -234,15 +234,24 @@ def main() -> None:
         help="with --model search: the search planner's lateral acceleration limit [m/s²] (the planner "
         "stage's imitation.expert_kwargs)",
     )
+    parser.add_argument(
+        "--limit-from-goal-heading",
+        type=float,
+        default=None,
+        help="with --max-lateral-acceleration: the limit holds only for goals whose heading differs from "
+        "the ego's by at least this [rad]",
+    )
     args = parser.parse_args()
     if args.max_lateral_acceleration is not None and args.model != "search":
         parser.error("--max-lateral-acceleration applies to --model search only")
+    if args.limit_from_goal_heading is not None and args.max_lateral_acceleration is None:
+        parser.error("--limit-from-goal-heading needs --max-lateral-acceleration")
     th.set_num_threads(1)
-    kwargs = (
-        {}
-        if args.max_lateral_acceleration is None
-        else {"max_lateral_acceleration": args.max_lateral_acceleration}
-    )
+    kwargs: dict[str, float] = {}
+    if args.max_lateral_acceleration is not None:
+        kwargs["max_lateral_acceleration"] = args.max_lateral_acceleration
+    if args.limit_from_goal_heading is not None:
+        kwargs["limit_from_goal_heading"] = args.limit_from_goal_heading
     planner: Planner = (
         EXPERTS[args.model](IntersectionConfig(), **kwargs)
         if args.model in EXPERTS
@@ -254,7 +263,7 @@ def main() -> None:
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
-    limit = "" if not kwargs else f" (max_lateral_acceleration {args.max_lateral_acceleration})"
+    limit = "" if not kwargs else " (" + ", ".join(f"{key} {value}" for key, value in kwargs.items()) + ")"
     print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}")
     print(
         f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "

@@ -12,6 +12,7 @@ import numpy as np
 
 from gccp_envs.action import EgoAction, EgoMotion
 from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.geometry import wrap_angle
 
 ALIGNED = 0.05
 """Heading error [rad] a turn must remove before the stopping scripted planner takes it."""
@@ -109,15 +110,22 @@ class SearchPlanner:
         heading_share: float = 0.8,
         hold_distance: float | None = None,
         max_lateral_acceleration: float | None = None,
+        limit_from_goal_heading: float = 0.0,
     ) -> None:
         if max_lateral_acceleration is not None and not max_lateral_acceleration > 0:
             raise ValueError(f"max_lateral_acceleration must be positive, got {max_lateral_acceleration!r}")
+        if not 0.0 <= limit_from_goal_heading < np.pi:
+            raise ValueError(f"limit_from_goal_heading must be in [0, pi), got {limit_from_goal_heading!r}")
         self.config = config
         self.horizon = horizon
         self.max_lateral_acceleration = max_lateral_acceleration
         """Lateral acceleration [m/s²] no step of a chosen sequence may exceed (speed² x the action's
         curvature), unless no allowed sequence keeps within it: a turn too tight for the speed is entered
         only after braking. None: no limit."""
+        self.limit_from_goal_heading = limit_from_goal_heading
+        """The limit holds only for a goal whose heading differs from the ego's by at least this [rad]: 0,
+        for every goal; about 0.5, for a goal on a turn but not one on the next lane (a lane change at
+        speed needs quick turns)."""
         self.hold_distance = config.subgoal_reach_radius if hold_distance is None else hold_distance
         """A goal on the ego's lane at most this far ahead [m] is a hold (a subgoal drawn to drive to lies
         farther: ``GCCPPlanner-v0`` draws them beyond the reach radius): of the sequences that reach it
@@ -240,7 +248,8 @@ class SearchPlanner:
         usable = allowed[first] | ~allowed.any()
         steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
         speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
-        if self.max_lateral_acceleration is not None:
+        turn_ahead = abs(float(wrap_angle(gh))) >= self.limit_from_goal_heading
+        if self.max_lateral_acceleration is not None and turn_ahead:
             gentle = usable & self._gentle(speed_after)
             usable = gentle if gentle.any() else usable
         if not (hit & usable[:, None]).any():

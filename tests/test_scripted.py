@@ -250,30 +250,47 @@ def test_search_planner_drives_off_from_a_standstill_for_a_goal_out_of_reach(goa
     assert np.hypot(state.x, state.y) > 1.0
 
 
-def test_search_planner_with_a_lateral_acceleration_limit_brakes_before_a_tight_turn():
-    # A right turn of radius 7 m ahead at cruise speed: unlimited, the planner holds 8 m/s into it and
-    # takes quick turns (10.7 m/s² at 8 m/s); limited to SUMO's 5.5 m/s², it brakes first.
+def drive_with_peak_lateral_acceleration(planner, goal, speed=8.0, steps=25):
+    """The actions the planner takes driving the ego's kinematics from the origin toward ``goal`` (held
+    fixed in the world), and the peak lateral acceleration [m/s²] of those steps."""
     from gccp_envs.action import EgoMotion, EgoState
     from gccp_envs.geometry import poses_to_frame
 
-    config = IntersectionConfig()
-    motion, goal = EgoMotion(config), np.array([14.0, 7.0, np.pi / 2])
-    peaks = {}
-    for limit in (None, 5.5):
-        planner, state, peak = (
-            SearchPlanner(config, max_lateral_acceleration=limit),
-            EgoState(0, 0, 0, 8.0),
-            0.0,
-        )
-        for _ in range(25):
-            local = poses_to_frame(goal, np.array([state.x, state.y]), state.heading)
-            action = planner(planner_obs(local, state.speed))
-            nxt = motion.step(state, action)
-            peak = max(peak, ((state.speed + nxt.speed) / 2) ** 2 * abs(motion.curvature[action]))
-            state = nxt
-        peaks[limit] = peak
-    assert peaks[None] > 8.0
-    assert peaks[5.5] <= 5.5 + 1e-9
+    motion, state, goal = EgoMotion(planner.config), EgoState(0, 0, 0, speed), np.asarray(goal)
+    actions, peak = [], 0.0
+    for _ in range(steps):
+        local = poses_to_frame(goal, np.array([state.x, state.y]), state.heading)
+        action = planner(planner_obs(local, state.speed))
+        nxt = motion.step(state, action)
+        peak = max(peak, ((state.speed + nxt.speed) / 2) ** 2 * abs(motion.curvature[action]))
+        actions.append(action)
+        state = nxt
+    return actions, peak
+
+
+def test_search_planner_with_a_lateral_acceleration_limit_brakes_before_a_tight_turn():
+    # A right turn of radius 7 m ahead at cruise speed: unlimited, the planner holds 8 m/s into it and
+    # takes quick turns (10.7 m/s² at 8 m/s); limited to SUMO's 5.5 m/s², it brakes first.
+    config, turn = IntersectionConfig(), [14.0, 7.0, np.pi / 2]
+    assert drive_with_peak_lateral_acceleration(SearchPlanner(config), turn)[1] > 8.0
+    limited = SearchPlanner(config, max_lateral_acceleration=5.5)
+    assert drive_with_peak_lateral_acceleration(limited, turn)[1] <= 5.5 + 1e-9
+
+
+def test_search_planner_limit_from_goal_heading_spares_lane_changes_but_not_turns():
+    # Limited only for goals heading 0.5 rad or more off the ego's: the lane change at cruise speed is
+    # the unlimited planner's (its quick turns exceed the limit), the right turn still the limited one's.
+    config, turn, lane_change = IntersectionConfig(), [14.0, 7.0, np.pi / 2], [15.0, 4.0, 0.0]
+    unlimited = SearchPlanner(config)
+    everywhere = SearchPlanner(config, max_lateral_acceleration=5.5)
+    on_turns = SearchPlanner(config, max_lateral_acceleration=5.5, limit_from_goal_heading=0.5)
+    free_actions, free_peak = drive_with_peak_lateral_acceleration(unlimited, lane_change, steps=15)
+    assert free_peak > 5.5
+    assert drive_with_peak_lateral_acceleration(everywhere, lane_change, steps=15)[0] != free_actions
+    assert drive_with_peak_lateral_acceleration(on_turns, lane_change, steps=15)[0] == free_actions
+    assert drive_with_peak_lateral_acceleration(on_turns, turn)[1] <= 5.5 + 1e-9
+    with pytest.raises(ValueError, match="limit_from_goal_heading"):
+        SearchPlanner(config, max_lateral_acceleration=5.5, limit_from_goal_heading=-0.1)
 
 
 def drive_search_planner(goal, speed, steps=30):
