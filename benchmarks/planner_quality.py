@@ -14,6 +14,10 @@
    decision-maker does after yielding: the share of those stops after which the ego drives off (moves
    1 m within 3 s) and the share that then complete the task. A planner that stands still for a far
    subgoal stalls the hierarchy until the time limit (``restart_rate``).
+5. Restarting in traffic: part 4 with default traffic, which a decision-maker stops the ego for and
+   which the planner sees in its observation: the share of those stops after which the episode runs
+   into the time limit (``stall_in_traffic``; a clone can restart on every empty road and still stand
+   beside traffic), and, apart, after which it collides (nothing checks the farthest candidate here).
 
 With ``--oracle``, part 1 also prints ``oracle_reach``: the share of the drawn subgoals that some
 forward path within the ego's turn radius and driving range reaches (Dubins paths; road edge and
@@ -169,15 +173,21 @@ def stopping(planner: Planner, episodes: int, seed: int, steps: int = 40) -> flo
 
 
 def restarting(
-    planner: Planner, episodes: int, seed: int, hold_decisions: int = 5, restart_decisions: int = 3
+    planner: Planner,
+    episodes: int,
+    seed: int,
+    hold_decisions: int = 5,
+    restart_decisions: int = 3,
+    traffic: bool = False,
 ) -> dict[str, float]:
-    """Stop the ego by hold subgoals at a random point of its route on an empty road, then send it to the
-    farthest candidate: how often it drives off and completes. Episodes that end before the hold, or
-    whose ego does not stand within ``hold_decisions`` decisions, are counted apart."""
-    env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
+    """Stop the ego by hold subgoals at a random point of its route on an empty road (with ``traffic``:
+    on default traffic), then send it to the farthest candidate: how often it drives off and completes,
+    and how often the episode then ends in a time-out or a collision. Episodes that end before the
+    hold, or whose ego does not stand within ``hold_decisions`` decisions, are counted apart."""
+    env = GCCPDeciderEnv(planner=planner, **({} if traffic else {"spawn_probability": 0.0}))
     farthest = FarthestSubgoalDecider()
     rng = np.random.default_rng(seed)
-    stops = moved = completed = not_stopped = 0
+    stops = moved = completed = not_stopped = timed_out = crashed = 0
     for task in TASKS:
         for k in range(episodes):
             obs, _ = env.reset(seed=seed + k, options={"task": task})
@@ -208,9 +218,13 @@ def restarting(
                     drove_off |= bool(np.hypot(world.ego.x - start[0], world.ego.y - start[1]) >= 1.0)
             moved += drove_off or bool(info["is_success"])
             completed += bool(info["is_success"])
+            timed_out += bool(info["timeout"])
+            crashed += bool(info["crashed"])
     return {
         "restart_rate": moved / max(stops, 1),
         "completion_after_stop": completed / max(stops, 1),
+        "timeout_after_stop": timed_out / max(stops, 1),
+        "crash_after_stop": crashed / max(stops, 1),
         "stops": stops,
         "not_stopped": not_stopped,
     }
@@ -260,6 +274,7 @@ def main() -> None:
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
     stop_rate = stopping(planner, args.episodes, args.seed)
     restart = restarting(planner, args.episodes, args.seed)
+    in_traffic = restarting(planner, args.episodes, args.seed, traffic=True)
     env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
@@ -289,6 +304,12 @@ def main() -> None:
         f"restart_rate {restart['restart_rate']:.3f} over {restart['stops']} stops along the route "
         f"(drove off within 3 s when sent on, empty road); completion after the stop "
         f"{restart['completion_after_stop']:.3f}; {restart['not_stopped']} holds did not stop"
+    )
+    print(
+        f"stall_in_traffic {in_traffic['timeout_after_stop']:.3f} of {in_traffic['stops']} stops along the "
+        f"route ended in the time limit (default traffic); completion after the stop "
+        f"{in_traffic['completion_after_stop']:.3f}, collisions {in_traffic['crash_after_stop']:.3f} "
+        f"(nothing checks the farthest candidate)"
     )
     for task in TASKS:
         rows = [r for r in results if r.task == task]

@@ -1,0 +1,43 @@
+"""The planner benchmark's restart test (benchmarks/planner_quality.py), on empty roads and in traffic."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from gccp_envs.action import EgoAction
+from gccp_envs.config import IntersectionConfig
+from gccp_envs.scripted import SearchPlanner
+
+BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "planner_quality.py"
+
+
+@pytest.fixture(scope="module")
+def planner_quality():
+    spec = importlib.util.spec_from_file_location("planner_quality", BENCHMARK)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def always_brake(obs, action_mask=None):
+    return int(EgoAction.SLOW_DOWN)
+
+
+def test_a_planner_that_never_drives_off_stalls_after_every_stop_in_traffic(planner_quality):
+    result = planner_quality.restarting(always_brake, episodes=1, seed=0, traffic=True)
+    assert result["stops"] >= 1
+    assert result["restart_rate"] == 0.0
+    assert result["completion_after_stop"] == 0.0
+    assert result["timeout_after_stop"] + result["crash_after_stop"] == pytest.approx(1.0)
+    assert result["timeout_after_stop"] > 0.0
+
+
+def test_the_search_planner_drives_off_after_its_stops_on_an_empty_road(planner_quality):
+    result = planner_quality.restarting(SearchPlanner(IntersectionConfig()), episodes=1, seed=0)
+    assert result["stops"] >= 1
+    assert result["restart_rate"] == 1.0
+    assert result["timeout_after_stop"] == 0.0
+    assert result["crash_after_stop"] == 0.0
