@@ -248,8 +248,8 @@ class SearchPlanner:
         usable = allowed[first] | ~allowed.any()
         steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
         speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
-        turn_ahead = abs(float(wrap_angle(gh))) >= self.limit_from_goal_heading
-        if self.max_lateral_acceleration is not None and turn_ahead:
+        limited = self.max_lateral_acceleration is not None
+        if limited and abs(float(wrap_angle(gh))) >= self.limit_from_goal_heading:
             gentle = usable & self._gentle(speed_after)
             usable = gentle if gentle.any() else usable
         if not (hit & usable[:, None]).any():
