@@ -272,6 +272,10 @@ class IntersectionConfig:
     """Constant of the subgoal-distance term (paper: -0.5)."""
     eps_s: float = 0.05
     """epsilon_s: weight of the distance to the chosen subgoal (paper: 0.05)."""
+    r_junction_stand: float = 0.0
+    """Paid for each decision after which the ego stands (below ``hold_stop_speed``) inside the junction,
+    past its stop line and before the end of its turn, where it blocks the crossing paths (ours; paper:
+    none, 0)."""
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -317,6 +321,8 @@ def _validate(config: IntersectionConfig) -> None:
             for v in (value if isinstance(value, tuple) else (value,))
         ):
             raise ValueError(f"{field.name} must be finite, got {value!r}")
+        if field.type == "float" and (not isinstance(value, (int, float)) or isinstance(value, bool)):
+            raise ValueError(f"{field.name} must be a number, got {value!r}")
     if config.task not in (*TASKS, "mixed"):
         raise ValueError(f"unknown task {config.task!r}: expected one of {', '.join((*TASKS, 'mixed'))}")
     if config.traffic not in TRAFFIC_BACKENDS:

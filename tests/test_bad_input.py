@@ -85,6 +85,7 @@ def test_evaluate_runs_no_code_pickled_in_a_model_file(models, tmp_path, capsys)
         (["--set", "duration=.inf"], "duration must be finite, got inf"),
         (["--set", "duration=.nan"], "duration must be finite, got nan"),
         (["--set", "r_time=-.inf"], "r_time must be finite, got -inf"),
+        (["--set", "r_near=abc"], "r_near must be a number, got 'abc'"),
         (["--set", "npc_speed_range=[7, .inf]"], "npc_speed_range must be finite"),
         (["--json", "missing/out.json"], "--json missing/out.json: no folder missing"),
         (["--gif", "missing/out.gif"], "--gif missing/out.gif: no folder missing"),
