@@ -272,10 +272,6 @@ class IntersectionConfig:
     """Constant of the subgoal-distance term (paper: -0.5)."""
     eps_s: float = 0.05
     """epsilon_s: weight of the distance to the chosen subgoal (paper: 0.05)."""
-    r_junction_stand: float = 0.0
-    """Paid for each decision after which the ego stands (below ``hold_stop_speed``) inside the junction,
-    past its stop line and before the end of its turn, where it blocks the crossing paths (ours; paper:
-    none, 0)."""
 
     def __post_init__(self) -> None:
         _validate(self)

@@ -137,8 +137,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             if outcome.terminal or truncated:
                 break
         paid = reached and (distance > cfg.subgoal_reach_radius or not cfg.r_subgoal_needs_travel)
-        stands = cfg.r_junction_stand != 0.0 and not outcome.terminal and world.ego_stands_in_junction()
-        terms = decider_reward(cfg, outcome.success, paid, distance, stands)
+        terms = decider_reward(cfg, outcome.success, paid, distance)
         future, future_mask = world.decision_future(record)
         info: dict[str, Any] = {
             "reward_terms": terms,

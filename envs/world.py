@@ -278,14 +278,6 @@ class IntersectionWorld:
             return mask
         return next_step if next_step.any() else np.ones_like(next_step)
 
-    def ego_stands_in_junction(self) -> bool:
-        """Whether the ego stands (below ``hold_stop_speed``) with its centre inside the junction: past
-        the stop line of its nearest route and before the end of that route's turn."""
-        if self.ego.speed >= self.config.hold_stop_speed:
-            return False
-        routes, s = self.ego_routes()
-        return bool(self.layout.stop_s < s[0] < self.layout.junction_end_s[routes[0]])
-
     def ego_routes(self) -> tuple[list[int], FloatArray]:
         """The ego's routes towards its task goal (see :meth:`_find_routes`), cached per step."""
         if self._routes is None:

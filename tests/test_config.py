@@ -73,7 +73,7 @@ def test_replace_validates():
         ({"scripted_stop_aligned": "yes"}, "scripted_stop_aligned must be true or false"),
         ({"scripted_turn_speed": 0.0}, "scripted_turn_speed must be a positive number"),
         ({"r_near": "-0.5"}, "r_near must be a number, got '-0.5'"),
-        ({"r_junction_stand": True}, "r_junction_stand must be a number, got True"),
+        ({"eps_s": True}, "eps_s must be a number, got True"),
         ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
         ({"smarts_grid_map": "no"}, "smarts_grid_map must be true or false"),
         ({"smarts_routes": "lanes"}, "unknown smarts_routes 'lanes': expected one of layout, waypoints"),

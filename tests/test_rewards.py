@@ -57,16 +57,11 @@ def test_planner_reward_terms():
 
 def test_decider_reward_terms():
     assert decider_reward(CFG, False, False, 0.0) == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5, "r_junction_stand": 0.0}
+        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5}
     )
     assert decider_reward(CFG, True, True, 12.0) == pytest.approx(
-        {"r_goal": 3.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5 + 0.05 * 12.0, "r_junction_stand": 0.0}
+        {"r_goal": 3.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5 + 0.05 * 12.0}
     )
-    # the junction term is paid only when the config sets it and the ego stands in the junction
-    assert decider_reward(CFG, False, False, 0.0, stands_in_junction=True)["r_junction_stand"] == 0.0
-    cfg = CFG.replace(r_junction_stand=-0.5)
-    assert decider_reward(cfg, False, False, 0.0, stands_in_junction=True)["r_junction_stand"] == -0.5
-    assert decider_reward(cfg, False, False, 0.0, stands_in_junction=False)["r_junction_stand"] == 0.0
 
 
 def test_reward_constants_come_from_the_config():
@@ -144,8 +139,8 @@ def test_flat_env_pays_arrival_at_the_task_exit_only():
     assert info["reward_terms"]["r_arr"] == 1.0
 
 
-def decider_env(seed=0, **world):
-    env = gym.make("GCCPDecider-v0", spawn_probability=0.0, task="straight", **world).unwrapped
+def decider_env(seed=0):
+    env = gym.make("GCCPDecider-v0", spawn_probability=0.0, task="straight").unwrapped
     env.reset(seed=seed)
     return env
 
@@ -158,9 +153,7 @@ def test_decider_reward_for_a_reached_subgoal():
     _, reward, terminated, _, info = env.step(0)
     assert not terminated
     assert info["subgoal_reached"]
-    assert info["reward_terms"] == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5, "r_junction_stand": 0.0}
-    )
+    assert info["reward_terms"] == pytest.approx({"r_goal": 0.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5})
     assert reward == pytest.approx(0.0)
 
 
@@ -173,8 +166,7 @@ def test_decider_reward_for_a_far_subgoal():
     _, reward, _, _, info = env.step(3)
     assert not info["subgoal_reached"]  # a standing start covers about 1 m in 1 s
     assert info["reward_terms"] == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5 + 0.05 * 15.0, "r_junction_stand": 0.0},
-        abs=1e-5,
+        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5 + 0.05 * 15.0}, abs=1e-5
     )
     assert reward == pytest.approx(0.25, abs=1e-5)
 
@@ -187,28 +179,3 @@ def test_decider_reward_for_the_task_goal():
     assert info["is_success"]
     assert info["reward_terms"]["r_goal"] == 3.0
     assert env.world.steps < 10  # the option ended early
-
-
-@pytest.mark.parametrize(
-    ("s", "speed", "charged"),
-    [
-        (45.0, 0.0, False),  # standing before the stop line (70 m)
-        (80.0, 0.0, True),  # standing 10 m into the junction
-        (80.0, 6.0, False),  # driving through it
-        (105.0, 0.0, False),  # standing on the exit road, past the end of the crossing
-    ],
-)
-def test_decider_reward_for_standing_in_the_junction(s, speed, charged):
-    env = decider_env(r_junction_stand=-0.5)
-    layout = env.world.layout
-    assert layout.stop_s < 80.0 < layout.junction_end_s[2] < 105.0
-    place_ego_on_path(env.world, 2, s, speed)
-    nearest = int(np.argmin(np.hypot(*env._observe()["subgoals"][:, :2].T)))
-    _, reward, terminated, _, info = env.step(nearest)  # a hold: a standing ego stays where it is
-    assert not terminated
-    assert info["reward_terms"]["r_junction_stand"] == (-0.5 if charged else 0.0)
-    assert reward == pytest.approx(sum(info["reward_terms"].values()))
-    default = decider_env()  # the default world charges nothing
-    place_ego_on_path(default.world, 2, s, speed)
-    _, _, _, _, info = default.step(nearest)
-    assert info["reward_terms"]["r_junction_stand"] == 0.0
