@@ -54,6 +54,28 @@ def test_an_npc_brakes_for_an_ego_standing_in_its_path():
             assert lowest_x < -20.0
 
 
+def test_an_npc_brakes_for_an_ego_standing_off_its_lanes_inside_the_junction():
+    config = IntersectionConfig(spawn_probability=0.0, traffic="sumo")
+    layout = layout_for(config)
+    npc_path = layout.paths_from(3, lane=0, turn="straight")[0]  # the priority road, westwards at y = -2
+    ego_path = layout.paths_from(0, lane=0, turn="straight")[0]  # northwards at x = 2 (lane 1: x = 6)
+    # Standing 3.5 m left of its movement's lanes (a wide turn could leave it there): placed exactly,
+    # SUMO would keep it on no lane, and its drivers would not see it.
+    ego = Obstacle(-1.5, -2.0, -np.pi / 2, 0.0, path=ego_path)
+    traffic = SumoTraffic(layout, config, np.random.default_rng(0))
+    traffic.spawn(npc_path, 0.0, speed=7.0)
+    lowest_x, crashed = np.inf, False
+    for _ in range(200):
+        traffic.step(ego)
+        assert traffic.sumo.api.vehicle.getLaneID(EGO_ID) != ""
+        crashed |= traffic.detect_crashes(ego)
+        (slot,) = traffic.indices
+        lowest_x = min(lowest_x, traffic.pose[slot, 0])
+    traffic.close()
+    assert not crashed and traffic.speed[slot] < 0.1
+    assert lowest_x - 2.5 > ego.x + 1.0
+
+
 def test_the_egos_sumo_position_follows_our_kinematics_each_step():
     env = gym.make("GCCPPlanner-v0", traffic="sumo", spawn_probability=0.2)
     env.reset(seed=1)
@@ -65,6 +87,7 @@ def test_the_egos_sumo_position_follows_our_kinematics_each_step():
         _, _, terminated, truncated, _ = env.step(action)
         ego = world.ego
         front = np.array([ego.x, ego.y]) + 2.5 * np.array([np.cos(ego.heading), np.sin(ego.heading)])
+        # (within half a lane of its movement's lanes, as here; farther off it is put on them: above)
         np.testing.assert_allclose(api.vehicle.getPosition(EGO_ID), to_sumo(front), atol=1e-6)
         angle = float(heading_to_sumo_angle(ego.heading))
         assert api.vehicle.getAngle(EGO_ID) == pytest.approx(angle, abs=1e-6)

@@ -9,7 +9,9 @@
   priority junction with its gap acceptance and impatience. Nothing of ours is added on top.
 - **The ego** is a SUMO vehicle on its task's route, placed every step at the pose our kinematics gave
   (``moveToXY``, as SMARTS couples its agents), so SUMO's drivers see it and react to it; its speed in
-  SUMO is the distance it moved over the step.
+  SUMO is the distance it moved over the step. Where its front is more than half a lane off every lane
+  of its movement (a wide turn), it is placed on the nearest point of its route's lanes instead, since
+  SUMO keeps a vehicle placed off its lanes on no lane, unseen by its drivers.
 - **Collisions** are ours, as for the builtin traffic: boxes that overlap. SUMO does not check them
   (``--collision.action none``); a crashed vehicle stops where it is and leaves after
   ``crashed_vehicle_lifetime``.
@@ -28,6 +30,7 @@ from numpy.typing import NDArray
 from traci import constants as tc
 
 from gccp_envs.config import DT, IntersectionConfig
+from gccp_envs.geometry import FloatArray
 from gccp_envs.scenario import IntersectionLayout
 from gccp_envs.sumo.network import (
     heading_to_sumo_angle,
@@ -63,6 +66,8 @@ STATE = (tc.VAR_POSITION, tc.VAR_ANGLE, tc.VAR_SPEED)
 """What SUMO reports of every vehicle after each step (the front bumper's position)."""
 KEEP_ROUTE_EXACT = 3
 """``moveToXY`` mode: the vehicle keeps its route (bit 0) and stands at the exact position given (bit 1)."""
+KEEP_ROUTE_ON_LANE = 1
+"""``moveToXY`` mode: the vehicle keeps its route and stands on the nearest point of its route's lanes."""
 
 
 class SumoTraffic(TrafficTable):
@@ -212,18 +217,34 @@ class SumoTraffic(TrafficTable):
     def _place_ego(self, api: Any, ego: Obstacle) -> None:
         """Move the ego's SUMO vehicle to its pose, adding it on its task's route the first time."""
         vehicle = api.vehicle
+        if ego.path is None:
+            raise ValueError("SUMO traffic routes the ego on its task: Obstacle.path must be given")
         if not self._ego_added:
-            if ego.path is None:
-                raise ValueError("SUMO traffic routes the ego on its task: Obstacle.path must be given")
             move = self.layout.movements[ego.path]
             vehicle.add(EGO_ID, route_id(move.arm, move.exit_arm), VEHICLE_TYPE)
             vehicle.setLength(EGO_ID, ego.length)
             vehicle.setWidth(EGO_ID, ego.width)
             self._ego_added = True
         direction = np.array([np.cos(ego.heading), np.sin(ego.heading)])
-        x, y = to_sumo(np.array([ego.x, ego.y]) + ego.length / 2.0 * direction)
+        front = np.array([ego.x, ego.y]) + ego.length / 2.0 * direction
+        x, y = to_sumo(front)
         angle = float(heading_to_sumo_angle(ego.heading))
-        vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), angle, keepRoute=KEEP_ROUTE_EXACT)
+        vehicle.moveToXY(
+            EGO_ID, "", -1, float(x), float(y), angle, keepRoute=self._keep_route(ego.path, front)
+        )
+
+    def _keep_route(self, path: int, front: FloatArray) -> int:
+        """How ``moveToXY`` places the ego whose front is at ``front``: at that exact position while it
+        lies within half a lane of one of the lane paths of its movement, else on the nearest point of
+        its route's lanes. SUMO puts a vehicle placed exactly but off its route's lanes on no lane at
+        all, where its drivers do not see it (a wide turn through the junction does that)."""
+        paths = self._candidates[path]
+        _, lateral = self.layout.paths.project(paths[paths >= 0], front)
+        return (
+            KEEP_ROUTE_EXACT
+            if np.min(np.abs(lateral)) <= self.config.lane_width / 2.0
+            else KEEP_ROUTE_ON_LANE
+        )
 
     def _admit(self, api: Any, departed: Sequence[str]) -> None:
         """Give the vehicles SUMO inserted this step a slot, and subscribe to their state."""
