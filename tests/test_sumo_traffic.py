@@ -31,48 +31,50 @@ def interface(request, monkeypatch):
     return request.param
 
 
-def test_an_npc_brakes_for_an_ego_standing_in_its_path():
+def priority_road_car_beside(ego: Obstacle | None) -> tuple[bool, float, float, bool]:
+    """Drive one car of the priority road (westwards at y = -2) for 20 s beside ``ego`` (None: none).
+
+    :return: whether it crashed, the lowest x its centre reached, its last speed, and whether SUMO had
+        the ego on one of its lanes at every step
+    """
     config = IntersectionConfig(spawn_probability=0.0, traffic="sumo")
     layout = layout_for(config)
-    npc_path = layout.paths_from(3, lane=0, turn="straight")[0]  # the priority road, westwards at y = -2
-    ego_path = layout.paths_from(0, lane=0, turn="straight")[0]  # northwards at x = 2
-    # The ego stands where the two cross, inside the junction; without it the NPC drives through.
-    for ego in (Obstacle(2.0, -2.0, -np.pi / 2, 0.0, path=ego_path), None):
-        traffic = SumoTraffic(layout, config, np.random.default_rng(0))
-        traffic.spawn(npc_path, 0.0, speed=7.0)
-        lowest_x, crashed = np.inf, False
-        for _ in range(200):
-            traffic.step(ego)
-            crashed |= traffic.detect_crashes(ego)
-            (slot,) = traffic.indices
-            lowest_x = min(lowest_x, traffic.pose[slot, 0])
-        traffic.close()
-        if ego is not None:
-            assert not crashed and traffic.speed[slot] < 0.1
-            assert lowest_x - 2.5 > ego.x + 1.0  # its front stopped short of the ego's side
-        else:
-            assert lowest_x < -20.0
-
-
-def test_an_npc_brakes_for_an_ego_standing_off_its_lanes_inside_the_junction():
-    config = IntersectionConfig(spawn_probability=0.0, traffic="sumo")
-    layout = layout_for(config)
-    npc_path = layout.paths_from(3, lane=0, turn="straight")[0]  # the priority road, westwards at y = -2
-    ego_path = layout.paths_from(0, lane=0, turn="straight")[0]  # northwards at x = 2 (lane 1: x = 6)
-    # Standing 3.5 m left of its movement's lanes (a wide turn could leave it there): placed exactly,
-    # SUMO would keep it on no lane, and its drivers would not see it.
-    ego = Obstacle(-1.5, -2.0, -np.pi / 2, 0.0, path=ego_path)
     traffic = SumoTraffic(layout, config, np.random.default_rng(0))
-    traffic.spawn(npc_path, 0.0, speed=7.0)
-    lowest_x, crashed = np.inf, False
+    traffic.spawn(layout.paths_from(3, lane=0, turn="straight")[0], 0.0, speed=7.0)
+    lowest_x, crashed, on_lane = np.inf, False, True
     for _ in range(200):
         traffic.step(ego)
-        assert traffic.sumo.api.vehicle.getLaneID(EGO_ID) != ""
+        if ego is not None:
+            on_lane &= traffic.sumo.api.vehicle.getLaneID(EGO_ID) != ""
         crashed |= traffic.detect_crashes(ego)
         (slot,) = traffic.indices
         lowest_x = min(lowest_x, traffic.pose[slot, 0])
     traffic.close()
-    assert not crashed and traffic.speed[slot] < 0.1
+    return crashed, lowest_x, float(traffic.speed[slot]), on_lane
+
+
+def ego_going_north(x: float) -> Obstacle:
+    """An ego standing at (x, -2) inside the junction, heading north on the south arm's straight movement
+    (its lanes at x = 2 and 6), in the path of the priority road's car above."""
+    layout = layout_for(IntersectionConfig())
+    return Obstacle(x, -2.0, -np.pi / 2, 0.0, path=layout.paths_from(0, lane=0, turn="straight")[0])
+
+
+def test_an_npc_brakes_for_an_ego_standing_in_its_path():
+    ego = ego_going_north(2.0)  # on its lane where the two roads cross
+    crashed, lowest_x, speed, _ = priority_road_car_beside(ego)
+    assert not crashed and speed < 0.1
+    assert lowest_x - 2.5 > ego.x + 1.0  # its front stopped short of the ego's side
+    assert priority_road_car_beside(None)[1] < -20.0  # without the ego it drives through
+
+
+def test_an_npc_brakes_for_an_ego_standing_off_its_lanes_inside_the_junction():
+    # 3.5 m left of its movement's lanes (a wide turn can leave it there): placed exactly, SUMO would
+    # keep it on no lane, and its drivers would not see it
+    ego = ego_going_north(-1.5)
+    crashed, lowest_x, speed, on_lane = priority_road_car_beside(ego)
+    assert on_lane
+    assert not crashed and speed < 0.1
     assert lowest_x - 2.5 > ego.x + 1.0
 
 
@@ -87,7 +89,7 @@ def test_the_egos_sumo_position_follows_our_kinematics_each_step():
         _, _, terminated, truncated, _ = env.step(action)
         ego = world.ego
         front = np.array([ego.x, ego.y]) + 2.5 * np.array([np.cos(ego.heading), np.sin(ego.heading)])
-        # (within half a lane of its movement's lanes, as here; farther off it is put on them: above)
+        # within half a lane of its movement's lanes, as here, the ego is placed exactly
         np.testing.assert_allclose(api.vehicle.getPosition(EGO_ID), to_sumo(front), atol=1e-6)
         angle = float(heading_to_sumo_angle(ego.heading))
         assert api.vehicle.getAngle(EGO_ID) == pytest.approx(angle, abs=1e-6)
