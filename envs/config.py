@@ -138,6 +138,10 @@ class IntersectionConfig:
     """Under SMARTS, the bird's-eye view is SMARTS's drivable-area grid map (its camera sensor, as the paper's
     state), not drawn from our layout of the same map (they agree on about 99 % of the cells); false saves
     SMARTS's rendering."""
+    smarts_clear_start: bool = True
+    """Under SMARTS, SUMO's vehicles within 15 m of the ego when it enters are taken off the road, as our
+    world and SUMO's traffic (``traffic: sumo``) start an episode; false keeps SMARTS's start as it comes,
+    with cars beside or behind an ego that appears among them at speed."""
     smarts_routes: str = "layout"
     """Under SMARTS, which lane paths are the ego's routes: 'layout', our rule (every path of the task before
     the stop line, the paths within a lane width after it), or 'waypoints', those SMARTS's waypoint paths
@@ -376,7 +380,13 @@ def _validate(config: IntersectionConfig) -> None:
         require_positive(name, getattr(config, name))
     if config.npc_patience is not None:
         require_positive("npc_patience", config.npc_patience)
-    for name in ("scripted_stop_aligned", "r_subgoal_needs_travel", "smarts_grid_map", "wrong_exit_penalty"):
+    for name in (
+        "scripted_stop_aligned",
+        "r_subgoal_needs_travel",
+        "smarts_grid_map",
+        "smarts_clear_start",
+        "wrong_exit_penalty",
+    ):
         if not isinstance(getattr(config, name), bool):
             raise ValueError(f"{name} must be true or false, got {getattr(config, name)!r}")
     for name in ("spawn_probability", "hold_probability", "hold_continue", "ego_start_standing"):

@@ -21,6 +21,8 @@ STANDING_START_BEFORE = 10.0
 """A standing start (``ego_start_standing``) lies at most this far [m] before the stop line ..."""
 STANDING_START_AFTER = 5.0
 """... and at most this far [m] past the junction box."""
+START_CLEARANCE = 15.0
+"""No other vehicle is within this distance [m] of the ego when it enters: none of them saw it arrive."""
 
 
 def make_traffic(
@@ -162,12 +164,12 @@ class IntersectionWorld:
             self._hist_uid[past % self._hist_len, slots] = uids
 
     def _place_ego(self) -> None:
-        """Put the ego at its drawn start, with no other vehicle within 15 m of it."""
+        """Put the ego at its drawn start, with no other vehicle within ``START_CLEARANCE`` of it."""
         path, s, speed = self._draw_ego_start()
         x, y, heading = self.layout.paths.pose_at(np.array(path), np.array(s))
         traffic = self.traffic
         idx = traffic.indices
-        traffic.remove(idx[np.hypot(traffic.pose[idx, 0] - x, traffic.pose[idx, 1] - y) < 15.0])
+        traffic.remove(idx[np.hypot(traffic.pose[idx, 0] - x, traffic.pose[idx, 1] - y) < START_CLEARANCE])
         speed = self._start_speed(path, s, speed)
         self.ego = EgoState(float(x), float(y), float(heading), speed)
 

@@ -24,7 +24,7 @@ from gccp_envs.smarts.fixes import (
 )
 from gccp_envs.smarts.scenario import MAP_FILE, MISSIONS_FILE, scenario_folder, traffic_specs
 from gccp_envs.sumo.network import CACHE_VARIABLE, network_file
-from gccp_envs.world import vehicle_sizes
+from gccp_envs.world import START_CLEARANCE, vehicle_sizes
 
 needs_smarts = pytest.mark.skipif(
     find_spec("smarts") is None,
@@ -211,6 +211,38 @@ def test_only_the_move_to_xy_warning_is_silenced():
         warnings.warn(f"{MOVE_TO_XY_WARNING}, use laneIndex instead.", UserWarning, stacklevel=1)
         warnings.warn("another warning", UserWarning, stacklevel=1)
     assert [str(w.message) for w in caught] == ["another warning"]
+
+
+def within_clearance(world) -> set[str]:
+    """Ids of the vehicles SMARTS reports within the start clearance of the ego."""
+    observation = world.observation
+    ego = np.asarray(observation.ego_vehicle_state.position[:2], float)
+    return {
+        state.id
+        for state in observation.neighborhood_vehicle_states or ()
+        if np.hypot(*(np.asarray(state.position[:2], float) - ego)) < START_CLEARANCE
+    }
+
+
+@needs_smarts
+def test_the_start_is_cleared_of_sumo_vehicles_within_15_m_as_in_our_world():
+    # Flow of seed 1002, left turn: a car passes the ego on the next lane as it enters.
+    kept = gym.make("GCCPDecider-v0", task="left", smarts_clear_start=False, **SMARTS)
+    cleared = gym.make("GCCPDecider-v0", task="left", **SMARTS)
+    try:
+        kept.reset(seed=1002)
+        near = within_clearance(kept.unwrapped.world)  # type: ignore[attr-defined]
+        assert near, "the flow of seed 1002 has a car within 15 m of the entering ego"
+        world = cleared.unwrapped.world  # type: ignore[attr-defined]
+        cleared.reset(seed=1002)
+        table = world.traffic
+        offsets = table.pose[table.indices, :2] - [world.ego.x, world.ego.y]
+        assert np.all(np.hypot(*offsets.T) >= START_CLEARANCE)
+        cleared.step(0)  # one decision: SMARTS no longer reports them, and nothing fails
+        assert near.isdisjoint(state.id for state in world.observation.neighborhood_vehicle_states or ())
+    finally:
+        kept.close()
+        cleared.close()
 
 
 @needs_smarts

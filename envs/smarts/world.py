@@ -3,7 +3,8 @@
 - **Episodes**: one SMARTS instance per world, with SUMO's traffic, on the task's scenario
   (:mod:`gccp_envs.smarts.scenario`). ``reset`` draws the task, the traffic variation (flow ``k`` of
   ``smarts_flows``), SUMO's seed and the ego's start from the episode's generator, as our world draws them;
-  SMARTS runs the traffic for ``warmup_time`` and puts the ego in at its start.
+  SMARTS runs the traffic for ``warmup_time`` and puts the ego in at its start; with ``smarts_clear_start``
+  SUMO's vehicles within 15 m of it are taken off the road, as our world starts an episode.
 - **The ego** moves by SMARTS's ``RelativeTargetPose``: our action's pose change over 0.1 s
   (:class:`~gccp_envs.action.EgoMotion`), turned into SMARTS's frame. Its pose is read back from SMARTS;
   its speed is the one our kinematics gave, as in our world.
@@ -55,7 +56,7 @@ from gccp_envs.smarts.scenario import EGO_ID, scenario_folder, traffic_specs
 from gccp_envs.sumo.network import to_sumo
 from gccp_envs.sumo.simulation import closing_on_error
 from gccp_envs.traffic import Obstacle, TrafficTable
-from gccp_envs.world import IntersectionWorld, StepOutcome
+from gccp_envs.world import START_CLEARANCE, IntersectionWorld, StepOutcome
 
 NEIGHBOURHOOD_MARGIN = 15.0
 """Metres beyond ``observation_radius`` within which SMARTS reports other vehicles, so that a neighbour of
@@ -232,12 +233,29 @@ class SmartsWorld(IntersectionWorld):
             random.seed(sumo_seed)  # SMARTS draws SUMO's --seed from Python's random at every reset
             observation = simulation.reset(self._scenario(start))[EGO_ID]
             self._mission_route = self._route_of_mission(simulation)
+            cleared = self._clear_start(simulation, observation) if self.config.smarts_clear_start else set()
         self.steps = 0
-        self._read(observation)
+        self._read(observation, ignore=cleared)
         self.ego.speed = self._start_speed(path, s, speed)
         self._record()
         self._backfill_history(np.concatenate([[self.ego_slot], self.traffic.indices]).astype(np.int64))
         self._candidates = self._routes = None
+
+    @staticmethod
+    def _clear_start(simulation: Any, observation: Any) -> set[str]:
+        """Take SUMO's vehicles within ``START_CLEARANCE`` of the ego off the road as it enters
+        (``smarts_clear_start``), as our world does; their ids."""
+        ego = np.asarray(observation.ego_vehicle_state.position[:2], float)
+        near = {
+            state.id
+            for state in observation.neighborhood_vehicle_states or ()
+            if np.hypot(*(np.asarray(state.position[:2], float) - ego)) < START_CLEARANCE
+        }
+        sumo = next(p for p in simulation.providers if isinstance(p, SumoTrafficSimulation))
+        for vehicle_id in near:
+            sumo.remove_actor(vehicle_id)
+            simulation.provider_removing_actor(sumo, vehicle_id)
+        return near
 
     @staticmethod
     def _route_of_mission(simulation: Any) -> Any:
@@ -325,11 +343,13 @@ class SmartsWorld(IntersectionWorld):
             return None
         return (np.asarray(grid.data)[..., 0] > 0).astype(np.uint8)
 
-    def _read(self, observation: Any, speed: float | None = None) -> None:
-        """The ego's pose (and, without ``speed``, SMARTS's speed) and the traffic table from SMARTS."""
+    def _read(self, observation: Any, speed: float | None = None, ignore: set[str] | None = None) -> None:
+        """The ego's pose (and, without ``speed``, SMARTS's speed) and the traffic table from SMARTS, without
+        the vehicles ``ignore`` names (taken off the road since SMARTS observed them)."""
         self.observation = observation
         state = observation.ego_vehicle_state
         x, y = to_sumo(np.asarray(state.position[:2], float))
         heading = float(smarts_heading(float(state.heading)))
         self.ego = EgoState(float(x), float(y), heading, float(state.speed if speed is None else speed))
-        self.smarts_traffic.fill(observation.neighborhood_vehicle_states or ())
+        states = observation.neighborhood_vehicle_states or ()
+        self.smarts_traffic.fill([state for state in states if not ignore or state.id not in ignore])
