@@ -352,4 +352,6 @@ class SmartsWorld(IntersectionWorld):
         heading = float(smarts_heading(float(state.heading)))
         self.ego = EgoState(float(x), float(y), heading, float(state.speed if speed is None else speed))
         states = observation.neighborhood_vehicle_states or ()
-        self.smarts_traffic.fill([state for state in states if not ignore or state.id not in ignore])
+        if ignore:  # only at a cleared start
+            states = [state for state in states if state.id not in ignore]
+        self.smarts_traffic.fill(states)
