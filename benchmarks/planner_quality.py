@@ -24,8 +24,9 @@ forward path within the ego's turn radius and driving range reaches (Dubins path
 traffic ignored), an upper bound on any planner's subgoal reach over the same draws.
 
 Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--episodes 100] [--seed 0]
-[--oracle]; ``--model scripted`` measures the scripted pure-pursuit planner, ``--model search`` the
-search planner (``gccp_envs.scripted.SearchPlanner``): the experts the planner stage can clone.
+[--oracle] [--set KEY=VALUE ...]; ``--model scripted`` measures the scripted pure-pursuit planner,
+``--model search`` the search planner (``gccp_envs.scripted.SearchPlanner``): the experts the planner
+stage can clone.
 Last line: ``task_completion_empty_road <rate>`` (goals: completion >= 0.98, reach >= 0.95,
 off-road <= 0.01).
 """
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -46,6 +48,7 @@ from gccp_envs.geometry import dubins_length
 from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
+from sb3_gccp.commands.common import CLIError, parse_assignments
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import load_planner
 from sb3_gccp.training.imitation import EXPERTS
@@ -100,13 +103,23 @@ def reach_bound(config: IntersectionConfig, start: EgoState, goal: np.ndarray, s
 
 
 def subgoal_reaching(
-    planner: Planner, episodes: int, seed: int, hold_steps: int, oracle: bool = False
+    planner: Planner,
+    episodes: int,
+    seed: int,
+    hold_steps: int,
+    oracle: bool = False,
+    world: dict[str, Any] | None = None,
 ) -> dict[str, float]:
     """Reach and off-road rates with uniformly drawn subgoals, over all tasks, how many of the drawn
     subgoals were short lane changes (see ``LANE_CHANGE_LENGTH``) and, with ``oracle``, how many
-    no planner can miss for want of a path (see ``reach_bound``)."""
+    no planner can miss for want of a path (see ``reach_bound``). ``world``: config keys of the env."""
     env = GCCPPlannerEnv(
-        decision_period=hold_steps, prediction_horizon=min(10, hold_steps), hold_probability=0.0
+        **{
+            **(world or {}),
+            "decision_period": hold_steps,
+            "prediction_horizon": min(10, hold_steps),
+            "hold_probability": 0.0,
+        }
     )
     reached = counted = offroad = total = short = short_reached = feasible = short_feasible = 0
     cut_short = dict.fromkeys(CUT_SHORT, 0)
@@ -156,10 +169,14 @@ def subgoal_reaching(
     }
 
 
-def stopping(planner: Planner, episodes: int, seed: int, steps: int = 40) -> float:
+def stopping(
+    planner: Planner, episodes: int, seed: int, steps: int = 40, world: dict[str, Any] | None = None
+) -> float:
     """Share of empty-road episodes in which the planner, given only hold subgoals, stands still on the
     road after ``steps`` steps."""
-    env = GCCPPlannerEnv(spawn_probability=0.0, hold_probability=1.0, hold_continue=1.0)
+    env = GCCPPlannerEnv(
+        **{**(world or {}), "spawn_probability": 0.0, "hold_probability": 1.0, "hold_continue": 1.0}
+    )
     stopped = 0
     for task in TASKS:
         for k in range(episodes):
@@ -179,12 +196,15 @@ def restarting(
     hold_decisions: int = 5,
     restart_decisions: int = 3,
     traffic: bool = False,
+    world: dict[str, Any] | None = None,
 ) -> dict[str, float]:
     """Stop the ego by hold subgoals at a random point of its route on an empty road (with ``traffic``:
     on default traffic), then send it to the farthest candidate: how often it drives off and completes,
     and how often the episode then ends in a time-out or a collision. Episodes that end before the
     hold, or whose ego does not stand within ``hold_decisions`` decisions, are counted apart."""
-    env = GCCPDeciderEnv(planner=planner, **({} if traffic else {"spawn_probability": 0.0}))
+    env = GCCPDeciderEnv(
+        planner=planner, **{**(world or {}), **({} if traffic else {"spawn_probability": 0.0})}
+    )
     farthest = FarthestSubgoalDecider()
     rng = np.random.default_rng(seed)
     stops = moved = completed = not_stopped = timed_out = crashed = 0
@@ -255,7 +275,19 @@ def main() -> None:
         help="with --max-lateral-acceleration: the limit holds only for goals whose heading differs from "
         "the ego's by at least this [rad]",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="world config key (repeatable) of every env the benchmark runs, e.g. rear_axle_offset=1.5",
+    )
     args = parser.parse_args()
+    try:
+        world = parse_assignments(args.set)
+        config = IntersectionConfig.from_dict(world)
+    except (CLIError, ValueError, TypeError) as err:
+        parser.error(str(err))
     if args.max_lateral_acceleration is not None and args.model != "search":
         parser.error("--max-lateral-acceleration applies to --model search only")
     if args.limit_from_goal_heading is not None and args.max_lateral_acceleration is None:
@@ -267,19 +299,18 @@ def main() -> None:
     if args.limit_from_goal_heading is not None:
         kwargs["limit_from_goal_heading"] = args.limit_from_goal_heading
     planner: Planner = (
-        EXPERTS[args.model](IntersectionConfig(), **kwargs)
-        if args.model in EXPERTS
-        else load_planner(args.model, IntersectionConfig())
+        EXPERTS[args.model](config, **kwargs) if args.model in EXPERTS else load_planner(args.model, config)
     )
-    reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle)
-    stop_rate = stopping(planner, args.episodes, args.seed)
-    restart = restarting(planner, args.episodes, args.seed)
-    in_traffic = restarting(planner, args.episodes, args.seed, traffic=True)
-    env = GCCPDeciderEnv(planner=planner, spawn_probability=0.0)
+    reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle, world)
+    stop_rate = stopping(planner, args.episodes, args.seed, world=world)
+    restart = restarting(planner, args.episodes, args.seed, world=world)
+    in_traffic = restarting(planner, args.episodes, args.seed, traffic=True, world=world)
+    env = GCCPDeciderEnv(planner=planner, **{**world, "spawn_probability": 0.0})
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
     limit = "" if not kwargs else " (" + ", ".join(f"{key} {value}" for key, value in kwargs.items()) + ")"
-    print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}")
+    settings = "".join(f", {key}={value}" for key, value in world.items())
+    print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}{settings}")
     print(
         f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "
         f"{args.hold_steps} steps (default traffic)"

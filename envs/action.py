@@ -73,11 +73,22 @@ class EgoMotion:
         new_speed = self.next_speed(speed, int(action))
         distance = 0.5 * (speed + new_speed) * DT
         dheading = float(self.curvature[int(action)] * distance)
+        dx, dy = self._shift(np.array(distance), np.array(dheading))
+        return np.array([dx, dy, dheading]), new_speed
+
+    def _shift(self, distance: FloatArray, turn: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The box centre's shift (dx, dy) in the ego frame when the turning point drives an arc of
+        ``distance`` [m] and ``turn`` [rad] (arrays of one shape)."""
         # The chord of an arc of turn dheading is shorter than the arc by sinc(dheading / 2) and points
         # half-way through the turn.
-        chord = distance * np.sinc(dheading / (2.0 * np.pi))
-        change = np.array([chord * np.cos(dheading / 2.0), chord * np.sin(dheading / 2.0), dheading])
-        return change, new_speed
+        chord = distance * np.sinc(turn / (2.0 * np.pi))
+        dx, dy = chord * np.cos(turn / 2.0), chord * np.sin(turn / 2.0)
+        offset = self.config.rear_axle_offset
+        if offset:
+            # The turning point lies ``offset`` behind the centre: the centre ends ``offset`` ahead of
+            # it along the new heading.
+            dx, dy = dx - offset * (1.0 - np.cos(turn)), dy + offset * np.sin(turn)
+        return dx, dy
 
     def all_next_poses(self, state: EgoState) -> FloatArray:
         """World poses (x, y, heading) after one step of each action, (N_a, 3)."""
@@ -110,11 +121,10 @@ class EgoMotion:
         )
         distance = 0.5 * (speeds + new_speeds) * DT
         turn = self.curvature[actions] * distance
-        chord = distance * np.sinc(turn / (2.0 * np.pi))
-        middle = poses[:, 2] + turn / 2.0
+        dx, dy = self._shift(distance, turn)
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
         moved = np.stack(
-            (poses[:, 0] + chord * np.cos(middle), poses[:, 1] + chord * np.sin(middle), poses[:, 2] + turn),
-            -1,
+            (poses[:, 0] + c * dx - s * dy, poses[:, 1] + s * dx + c * dy, poses[:, 2] + turn), -1
         )
         return moved, new_speeds
 

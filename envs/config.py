@@ -184,6 +184,11 @@ class IntersectionConfig:
     """Curvature [1/m] of 'slowly turn left/right' (a left turn needs 1/15)."""
     quick_turn_curvature: float = 1.0 / 6.0
     """Curvature [1/m] of 'quickly turn left/right' (a right turn needs 1/7)."""
+    rear_axle_offset: float = 0.0
+    """Distance [m] behind the box's centre of the point the ego turns about, as a car turns about its
+    rear axle: that point drives the action's arc and the box follows it. 0 (the default): the box turns
+    about its centre, so a turn swings its rear corners out by half its length. 1.5 was tried and not
+    adopted (docs/experiments/2026-11-28-ego-turning-about-its-rear-axle.md)."""
     scripted_stop_aligned: bool = False
     """Whether the scripted planner, stopping on a goal whose heading differs from its own, first turns
     towards it (a turn holds speed, so it brakes a step later) rather than braking askew across lanes.
@@ -403,5 +408,8 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError("exit_distance must be at least 10 m shorter than approach_length")
     if config.prediction_horizon > config.decision_period:
         raise ValueError("prediction_horizon (T_f) must not exceed decision_period (T_m)")
+    offset = config.rear_axle_offset
+    if not isinstance(offset, (int, float)) or isinstance(offset, bool) or not 0.0 <= offset <= 2.5:
+        raise ValueError(f"rear_axle_offset must be in [0, 2.5] m (the box's rear half), got {offset!r}")
     if config.quick_turn_curvature < config.slow_turn_curvature:
         raise ValueError("quick_turn_curvature must be at least slow_turn_curvature")

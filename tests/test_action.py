@@ -143,3 +143,56 @@ def test_stop_and_go():
 def test_invalid_action(action):
     with pytest.raises(ValueError, match="invalid ego action"):
         MOTION.pose_change(5.0, action)
+
+
+REAR = EgoMotion(IntersectionConfig(rear_axle_offset=1.5))
+
+
+@given(st.floats(0.1, 12.0), st.sampled_from(list(EgoAction)), st.floats(-np.pi, np.pi))
+def test_with_a_rear_axle_offset_the_point_behind_the_centre_drives_the_arc(speed, action, heading):
+    """The point 1.5 m behind the centre moves as the centre does without the offset: a chord pointing
+    half-way through the turn; the box keeps its heading change."""
+    state = EgoState(3.0, -4.0, heading, speed)
+    after, without = REAR.step(state, action), MOTION.step(state, action)
+
+    def rear(s: EgoState) -> np.ndarray:
+        return np.array([s.x, s.y]) - 1.5 * np.array([np.cos(s.heading), np.sin(s.heading)])
+
+    np.testing.assert_allclose(
+        rear(after) - rear(state), [without.x - state.x, without.y - state.y], atol=1e-9
+    )
+    assert after.heading == pytest.approx(without.heading) and after.speed == without.speed
+
+
+def test_with_a_rear_axle_offset_the_rear_corners_swing_out_less():
+    """Turning right, the rear left corner moves left (outwards) by less than when the box turns about
+    its centre; the front moves further into the turn."""
+    rear_left, front_right = np.array([-2.5, -1.0]), np.array([2.5, 1.0])
+
+    def corner(s: EgoState, local: np.ndarray) -> np.ndarray:
+        c, s_ = np.cos(s.heading), np.sin(s.heading)
+        return np.array([s.x + c * local[0] - s_ * local[1], s.y + s_ * local[0] + c * local[1]])
+
+    turned_centre = turned_rear = EgoState(0.0, 0.0, 0.0, 6.0)
+    for _ in range(5):
+        turned_centre = MOTION.step(turned_centre, EgoAction.QUICKLY_TURN_RIGHT)
+        turned_rear = REAR.step(turned_rear, EgoAction.QUICKLY_TURN_RIGHT)
+    assert corner(turned_rear, rear_left)[1] > corner(turned_centre, rear_left)[1]  # less far left
+    assert corner(turned_rear, front_right)[1] > corner(turned_centre, front_right)[1]
+
+
+def test_step_many_follows_step_with_a_rear_axle_offset():
+    poses, speeds = np.array([[1.0, 2.0, 0.3], [-4.0, 0.5, -2.0]]), np.array([7.0, 2.0])
+    actions = np.array([EgoAction.QUICKLY_TURN_RIGHT, EgoAction.SLOWLY_TURN_LEFT])
+    moved, new_speeds = REAR.step_many(poses, speeds, actions)
+    for k in range(2):
+        after = REAR.step(EgoState(*poses[k], speeds[k]), int(actions[k]))
+        np.testing.assert_allclose(moved[k, :2], (after.x, after.y), atol=1e-12)
+        assert new_speeds[k] == after.speed
+
+
+def test_a_rear_axle_offset_outside_the_box_is_refused():
+    with pytest.raises(ValueError, match="rear_axle_offset"):
+        IntersectionConfig(rear_axle_offset=2.6)
+    with pytest.raises(ValueError, match="rear_axle_offset"):
+        IntersectionConfig(rear_axle_offset=-0.1)

@@ -41,3 +41,24 @@ def test_the_search_planner_drives_off_after_its_stops_on_an_empty_road(planner_
     assert result["restart_rate"] == 1.0
     assert result["timeout_after_stop"] == 0.0
     assert result["crash_after_stop"] == 0.0
+
+
+def test_set_runs_the_benchmark_in_that_world(planner_quality, monkeypatch):
+    """--set KEY=VALUE reaches every env the benchmark builds; a bad key is one usage error (exit 2)."""
+    from gccp_envs.option_env import GCCPDeciderEnv
+
+    seen = []
+    real_init = GCCPDeciderEnv.__init__
+
+    def spy(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        seen.append(self.config.rear_axle_offset)
+
+    monkeypatch.setattr(GCCPDeciderEnv, "__init__", spy)
+    planner_quality.restarting(always_brake, episodes=1, seed=0, world={"rear_axle_offset": 1.5})
+    assert seen == [1.5]
+    argv = ["planner_quality.py", "--model", "search", "--set", "rear_axle_offset=3"]
+    monkeypatch.setattr("sys.argv", argv)
+    with pytest.raises(SystemExit) as error:
+        planner_quality.main()
+    assert error.value.code == 2
