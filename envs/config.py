@@ -187,8 +187,8 @@ class IntersectionConfig:
     rear_axle_offset: float = 0.0
     """Distance [m] behind the box's centre of the point the ego turns about, as a car turns about its
     rear axle: that point drives the action's arc and the box follows it. 0 (the default): the box turns
-    about its centre, so a turn swings its rear corners out by half its length. 1.5 was tried and not
-    adopted (docs/experiments/2026-11-28-ego-turning-about-its-rear-axle.md)."""
+    about its centre, so a turn swings its rear corners out by half its length. 1.5 and 0.75 were tried
+    and not adopted (docs/experiments/2026-11-28-ego-turning-about-its-rear-axle.md)."""
     scripted_stop_aligned: bool = False
     """Whether the scripted planner, stopping on a goal whose heading differs from its own, first turns
     towards it (a turn holds speed, so it brakes a step later) rather than braking askew across lanes.
