@@ -73,12 +73,14 @@ class EgoMotion:
         new_speed = self.next_speed(speed, int(action))
         distance = 0.5 * (speed + new_speed) * DT
         dheading = float(self.curvature[int(action)] * distance)
-        dx, dy = self._shift(np.array(distance), np.array(dheading))
+        dx, dy = self._shift(distance, dheading)
         return np.array([dx, dy, dheading]), new_speed
 
-    def _shift(self, distance: FloatArray, turn: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def _shift(
+        self, distance: FloatArray | float, turn: FloatArray | float
+    ) -> tuple[FloatArray | float, FloatArray | float]:
         """The box centre's shift (dx, dy) in the ego frame when the turning point drives an arc of
-        ``distance`` [m] and ``turn`` [rad] (arrays of one shape)."""
+        ``distance`` [m] and ``turn`` [rad] (floats, or arrays of one shape)."""
         # The chord of an arc of turn dheading is shorter than the arc by sinc(dheading / 2) and points
         # half-way through the turn.
         chord = distance * np.sinc(turn / (2.0 * np.pi))

@@ -9,6 +9,8 @@ from hypothesis import strategies as st
 
 from gccp_envs.action import EgoAction, EgoMotion, EgoState
 from gccp_envs.config import IntersectionConfig
+from gccp_envs.geometry import box_corners
+from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH
 
 CFG = IntersectionConfig()
 MOTION = EgoMotion(CFG)
@@ -167,11 +169,10 @@ def test_with_a_rear_axle_offset_the_point_behind_the_centre_drives_the_arc(spee
 def test_with_a_rear_axle_offset_the_rear_corners_swing_out_less():
     """Turning right, the rear left corner moves left (outwards) by less than when the box turns about
     its centre; the front moves further into the turn."""
-    rear_left, front_right = np.array([-2.5, -1.0]), np.array([2.5, 1.0])
+    rear_left, front_right = 2, 0  # box_corners' order: (rear, left) and (front, right) in the ego frame
 
-    def corner(s: EgoState, local: np.ndarray) -> np.ndarray:
-        c, s_ = np.cos(s.heading), np.sin(s.heading)
-        return np.array([s.x + c * local[0] - s_ * local[1], s.y + s_ * local[0] + c * local[1]])
+    def corner(s: EgoState, which: int) -> np.ndarray:
+        return box_corners(s.x, s.y, s.heading, VEHICLE_LENGTH, VEHICLE_WIDTH)[which]
 
     turned_centre = turned_rear = EgoState(0.0, 0.0, 0.0, 6.0)
     for _ in range(5):
