@@ -92,6 +92,33 @@ class EgoMotion:
             dx, dy = dx - offset * (1.0 - np.cos(turn)), dy + offset * np.sin(turn)
         return dx, dy
 
+    def two_arc_paths(self, length: float, spacing: float = 0.5, split: float = 1.0) -> FloatArray:
+        """Box-centre poses along every path of two arcs of the actions' curvatures, in the start frame.
+
+        A path drives one curvature for the first ``l1`` metres (0, ``split``, 2 ``split``, ...) and
+        another for the rest of ``length``, sampled every ``spacing`` metres. Speed does not enter: a turn
+        holds its curvature at any speed, and a straight piece may brake or accelerate. The single arcs
+        come first.
+
+        :return: poses (x, y, heading) relative to the start pose, (paths, samples, 3)
+        """
+        curvatures = np.unique(self.curvature)
+        s = np.arange(1, round(length / spacing) + 1) * spacing
+        singles = [(k, length, k) for k in curvatures]
+        splits = np.arange(1, int(np.ceil(length / split))) * split
+        pairs = [(k1, l1, k2) for k1 in curvatures for l1 in splits for k2 in curvatures if k1 != k2]
+        paths = np.empty((len(singles) + len(pairs), len(s), 3))
+        for i, (k1, l1, k2) in enumerate(singles + pairs):
+            first = np.minimum(s, l1)
+            turn1 = k1 * first
+            dx1, dy1 = self._shift(first, turn1)
+            second = np.maximum(s - l1, 0.0)
+            turn2 = k2 * second
+            dx2, dy2 = self._shift(second, turn2)
+            c, sn = np.cos(turn1), np.sin(turn1)
+            paths[i] = np.stack((dx1 + c * dx2 - sn * dy2, dy1 + sn * dx2 + c * dy2, turn1 + turn2), -1)
+        return paths
+
     def all_next_poses(self, state: EgoState) -> FloatArray:
         """World poses (x, y, heading) after one step of each action, (N_a, 3)."""
         poses = np.empty((len(self.curvature), 3))

@@ -205,6 +205,13 @@ class IntersectionConfig:
     and some action held for the remaining steps keeps it there (1: the next step only). 10 (1 s): at 5
     a planner could still enter a right-hand corner too fast to stay on the road
     (docs/experiments/2026-11-26-collisions-over-the-learned-planner.md)."""
+    mask_drive_on: float = 0.0
+    """Metres [m] the ego must be able to drive on after an allowed action: the action mask also asks
+    that from the pose after it some path of two arcs of the actions' curvatures (one for the first
+    0-n metres, another for the rest) keeps the box on the road this far. 0: not asked. It keeps the
+    ego out of poses from which every way on leaves the road, such as the end of a right turn taken at
+    cruise speed beside the kerb, where no action held for ``mask_lookahead`` steps stays on the road and
+    the mask falls back to the next step."""
 
     # --- state (paper III-B-1) -------------------------------------------------------------------
     num_neighbours: int = 5
@@ -408,6 +415,9 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError("exit_distance must be at least 10 m shorter than approach_length")
     if config.prediction_horizon > config.decision_period:
         raise ValueError("prediction_horizon (T_f) must not exceed decision_period (T_m)")
+    drive_on = config.mask_drive_on
+    if not isinstance(drive_on, (int, float)) or isinstance(drive_on, bool) or not 0.0 <= drive_on <= 30.0:
+        raise ValueError(f"mask_drive_on must be in [0, 30] m (0: off), got {drive_on!r}")
     offset = config.rear_axle_offset
     if not isinstance(offset, (int, float)) or isinstance(offset, bool) or not 0.0 <= offset <= 2.5:
         raise ValueError(f"rear_axle_offset must be in [0, 2.5] m (the box's rear half), got {offset!r}")

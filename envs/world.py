@@ -110,6 +110,8 @@ class IntersectionWorld:
         self._routes: tuple[list[int], FloatArray] | None = None
         self._mask: tuple[tuple[float, ...], NDArray[np.bool_]] | None = None
         """The ego's (x, y, heading, speed) and its action mask, computed once per pose."""
+        self._drive_on_paths: tuple[FloatArray, FloatArray] | None = None
+        """The paths :meth:`_can_drive_on` tries, single arcs and pairs, made on first use."""
 
     def _make_traffic(self) -> TrafficTable:
         return make_traffic(self.layout, self.config, self.rng)
@@ -256,8 +258,10 @@ class IntersectionWorld:
 
         An action is allowed if the ego is on the road after it and, for ``mask_lookahead - 1`` more
         steps, some action held all along keeps it there. If no action passes, the actions that keep
-        it on the road for the next step are allowed; if none does either, all of them. Computed once
-        per pose of the ego (an env's wrapper and its policy may both ask at the same step).
+        it on the road for the next step are allowed; if none does either, all of them. With
+        ``mask_drive_on``, of those only the actions after which the ego can drive on that far
+        (:meth:`_can_drive_on`), unless none can. Computed once per pose of the ego (an env's wrapper and
+        its policy may both ask at the same step).
         """
         ego = (self.ego.x, self.ego.y, self.ego.heading, self.ego.speed)
         if self._mask is None or self._mask[0] != ego:
@@ -276,9 +280,42 @@ class IntersectionWorld:
                 mask[action] = any(
                     self._on_road(motion.rollout(next_states[action], hold, later)).all() for hold in range(n)
                 )
-        if mask.any():
-            return mask
-        return next_step if next_step.any() else np.ones_like(next_step)
+        if not mask.any():
+            mask = next_step if next_step.any() else np.ones_like(next_step)
+        if self.config.mask_drive_on:
+            poses = np.array([(s.x, s.y, s.heading) for s in next_states])
+            allowed = mask.copy()
+            allowed[mask] = self._can_drive_on(poses[mask])
+            if allowed.any():
+                return allowed
+        return mask
+
+    def _can_drive_on(self, poses: FloatArray) -> NDArray[np.bool_]:
+        """Whether from each pose (n, 3) some path of two arcs keeps the box on the road for
+        ``mask_drive_on`` metres (:meth:`EgoMotion.two_arc_paths`). The single arcs are tried first: on a
+        lane or in the junction one of them nearly always passes."""
+        if self._drive_on_paths is None:
+            paths = self.motion.two_arc_paths(self.config.mask_drive_on)
+            singles = len(np.unique(self.motion.curvature))
+            self._drive_on_paths = (paths[:singles], paths[singles:])
+        passed = np.zeros(len(poses), dtype=bool)
+        for paths in self._drive_on_paths:
+            todo = np.flatnonzero(~passed)
+            if not len(todo):
+                break
+            x, y, heading = (poses[todo, k, None, None] for k in range(3))
+            c, s = np.cos(heading), np.sin(heading)
+            world = np.stack(
+                (
+                    x + c * paths[..., 0] - s * paths[..., 1],
+                    y + s * paths[..., 0] + c * paths[..., 1],
+                    heading + paths[..., 2],
+                ),
+                -1,
+            )
+            on_road = self._on_road(world.reshape(-1, 3)).reshape(world.shape[:-1])
+            passed[todo] = on_road.all(axis=-1).any(axis=-1)
+        return passed
 
     def ego_routes(self) -> tuple[list[int], FloatArray]:
         """The ego's routes towards its task goal (see :meth:`_find_routes`), cached per step."""

@@ -197,3 +197,20 @@ def test_a_rear_axle_offset_outside_the_box_is_refused():
         IntersectionConfig(rear_axle_offset=2.6)
     with pytest.raises(ValueError, match="rear_axle_offset"):
         IntersectionConfig(rear_axle_offset=-0.1)
+
+
+@pytest.mark.parametrize("motion", [MOTION, REAR], ids=["centre", "rear axle"])
+def test_two_arc_paths_are_the_poses_of_two_held_actions(motion):
+    """At 5 m/s a turn action drives 0.5 m a step, the paths' spacing: a single arc is a turn held all
+    along, a pair is one turn held for its first piece and another for the rest."""
+    paths = motion.two_arc_paths(10.0, spacing=0.5, split=1.0)
+    curvatures = list(np.unique(motion.curvature))
+    start = EgoState(0.0, 0.0, 0.0, 5.0)
+    quick_right = curvatures.index(motion.curvature[EgoAction.QUICKLY_TURN_RIGHT])
+    held = motion.rollout(start, EgoAction.QUICKLY_TURN_RIGHT, 20)
+    np.testing.assert_allclose(paths[quick_right], held, atol=1e-9)
+    first = motion.rollout(start, EgoAction.SLOWLY_TURN_LEFT, 8)  # 4 m
+    second = motion.rollout(EgoState(*first[-1], 5.0), EgoAction.QUICKLY_TURN_RIGHT, 12)
+    expected = np.concatenate([first, second])
+    assert np.abs(paths - expected).max(axis=(1, 2)).min() < 1e-9
+    assert len(paths) == len(curvatures) + len(curvatures) * (len(curvatures) - 1) * 9

@@ -195,24 +195,30 @@ def test_action_mask_is_computed_once_per_pose_of_the_ego(make_world, monkeypatc
     assert len(calls) == 3
 
 
-@given(st.floats(-90, 90), st.floats(-90, 90), st.floats(-np.pi, np.pi), st.floats(0.0, 12.0))
-def test_action_mask_is_never_empty(x, y, heading, speed):
-    world = _shared_world()
+@given(
+    st.floats(-90, 90),
+    st.floats(-90, 90),
+    st.floats(-np.pi, np.pi),
+    st.floats(0.0, 12.0),
+    st.sampled_from([0.0, 10.0]),
+)
+def test_action_mask_is_never_empty(x, y, heading, speed, drive_on):
+    world = _shared_world(drive_on)
     world.ego = EgoState(x, y, heading, speed)
     mask = world.action_mask()
     assert mask.shape == (6,) and mask.dtype == bool
     assert mask.any()
 
 
-_WORLD: list[IntersectionWorld] = []
+_WORLDS: dict[float, IntersectionWorld] = {}
 
 
-def _shared_world() -> IntersectionWorld:
-    if not _WORLD:
-        world = IntersectionWorld(IntersectionConfig(spawn_probability=0.0))
+def _shared_world(drive_on: float = 0.0) -> IntersectionWorld:
+    if drive_on not in _WORLDS:
+        world = IntersectionWorld(IntersectionConfig(spawn_probability=0.0, mask_drive_on=drive_on))
         world.reset(np.random.default_rng(0), "straight")
-        _WORLD.append(world)
-    return _WORLD[0]
+        _WORLDS[drive_on] = world
+    return _WORLDS[drive_on]
 
 
 def test_history_window_and_validity(make_world):
@@ -288,3 +294,55 @@ def test_stop_and_go_in_the_world(make_world):
         assert not world.step(EgoAction.KEEP_DIRECTION).terminal
     assert world.ego.speed == world.config.cruise_speed
     assert world.ego.x == pytest.approx(6.0) and world.ego.y < stopped[1]
+
+
+# Coming out of a right turn at cruise speed beside the kerb (the south arm's right turn exits east; the
+# exit's right lane has its kerb at y = 8): no action held for 1 s keeps the box on the road, so the
+# mask falls back to the actions that keep it there for one step, the quick right turn among them.
+# After that turn every way on leaves the road within 10 m.
+BESIDE_THE_KERB = (11.062, 7.573, -0.3643, 8.0)
+
+
+def test_drive_on_mask_refuses_an_action_after_which_every_way_on_leaves_the_road(make_world):
+    without = make_world()
+    place_ego(without, *BESIDE_THE_KERB)
+    np.testing.assert_array_equal(without.action_mask(), [True, True, False, True, False, True])
+    world = make_world(mask_drive_on=10.0)
+    place_ego(world, *BESIDE_THE_KERB)
+    np.testing.assert_array_equal(world.action_mask(), [True, True, False, True, False, False])
+    # After the quick right turn no two actions, one after the other, keep the box on the road for
+    # 10 m; after the slow one some do (though no single action held does).
+    for first, trapped in ((EgoAction.QUICKLY_TURN_RIGHT, True), (EgoAction.SLOWLY_TURN_RIGHT, False)):
+        after = world.motion.step(EgoState(*BESIDE_THE_KERB), first)
+        assert world.ego_on_road(after)
+        assert _drives_on(world, after, steps=13) != trapped, first  # 13 steps at 8 m/s: 10.4 m
+
+
+def _drives_on(world: IntersectionWorld, start: EgoState, steps: int) -> bool:
+    """Whether some action held for k steps and then another for the rest keeps the ego on the road."""
+    for a in EgoAction:
+        for k in range(steps + 1):
+            for b in EgoAction:
+                state, on_road = start, True
+                for step in range(steps):
+                    state = world.motion.step(state, a if step < k else b)
+                    if not world.ego_on_road(state):
+                        on_road = False
+                        break
+                if on_road:
+                    return True
+    return False
+
+
+def test_drive_on_mask_changes_nothing_on_an_open_lane(make_world):
+    world = make_world(mask_drive_on=10.0)
+    place_ego(world, 4.0, 50.0, -np.pi / 2, 8.0)
+    assert world.action_mask().all()
+    place_ego(world, 6.0, 50.0, -np.pi / 2 + 0.4, 8.0)  # at the kerb: only the quick left turn, as without
+    np.testing.assert_array_equal(world.action_mask(), [False, False, False, False, True, False])
+
+
+@pytest.mark.parametrize("value", [-1.0, 31.0, True, "10"])
+def test_drive_on_mask_out_of_range_is_refused(value):
+    with pytest.raises(ValueError, match="mask_drive_on"):
+        IntersectionConfig(mask_drive_on=value)
