@@ -152,10 +152,10 @@ def test_action_mask_looks_ahead_for_a_way_to_stay_on_the_road(make_world):
     # Near the right kerb, heading 17 degrees towards it: every action keeps the car on the road for
     # one step, but after a quick right turn no action held for 0.4 s more avoids the kerb.
     state = (5.75, 50.0, -np.pi / 2 + 0.3, 8.0)
-    one_step = make_world(mask_lookahead=1)
+    one_step = make_world(mask_lookahead=1, mask_drive_on=0.0)
     place_ego(one_step, *state)
     assert one_step.action_mask().all()
-    world = make_world()
+    world = make_world(mask_drive_on=0.0)
     place_ego(world, *state)
     np.testing.assert_array_equal(world.action_mask(), [True] * 5 + [False])
     for hold in EgoAction:
@@ -304,7 +304,7 @@ BESIDE_THE_KERB = (11.062, 7.573, -0.3643, 8.0)
 
 
 def test_drive_on_mask_refuses_an_action_after_which_every_way_on_leaves_the_road(make_world):
-    without = make_world()
+    without = make_world(mask_drive_on=0.0)
     place_ego(without, *BESIDE_THE_KERB)
     np.testing.assert_array_equal(without.action_mask(), [True, True, False, True, False, True])
     world = make_world(mask_drive_on=10.0)
