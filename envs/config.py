@@ -211,7 +211,8 @@ class IntersectionConfig:
     0-n metres, another for the rest) keeps the box on the road this far. 0: not asked. It keeps the
     ego out of poses from which every way on leaves the road, such as the end of a right turn taken at
     cruise speed beside the kerb, where no action held for ``mask_lookahead`` steps stays on the road and
-    the mask falls back to the next step."""
+    the mask falls back to the next step. 10 was tried and not adopted
+    (docs/experiments/2026-11-28-a-mask-that-asks-for-a-way-on.md)."""
 
     # --- state (paper III-B-1) -------------------------------------------------------------------
     num_neighbours: int = 5
