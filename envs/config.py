@@ -92,6 +92,15 @@ def require_non_negative(name: str, value: Any) -> None:
         raise ValueError(f"{name} must be a non-negative number, got {value!r}")
 
 
+def require_in_range(name: str, value: Any, low: float, high: float, unit: str = "") -> None:
+    """Raise ``ValueError`` unless ``value`` is a number (not a bool) in ``[low, high]``.
+
+    :param unit: said after the range in the message (" m (0: off)")
+    """
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not low <= value <= high:
+        raise ValueError(f"{name} must be in [{low:g}, {high:g}]{unit}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class IntersectionConfig:
     """Configuration of the intersection world shared by the planner, decider and flat envs.
@@ -403,9 +412,7 @@ def _validate(config: IntersectionConfig) -> None:
         if not isinstance(getattr(config, name), bool):
             raise ValueError(f"{name} must be true or false, got {getattr(config, name)!r}")
     for name in ("spawn_probability", "hold_probability", "hold_continue", "ego_start_standing"):
-        value = getattr(config, name)
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
-            raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        require_in_range(name, getattr(config, name), 0.0, 1.0)
     for name in ("ego_start_distance", "ego_start_speed", "npc_speed_range", "npc_time_headway"):
         low_high = getattr(config, name)
         if len(low_high) != 2 or not 0 <= low_high[0] <= low_high[1]:
@@ -416,11 +423,7 @@ def _validate(config: IntersectionConfig) -> None:
         raise ValueError("exit_distance must be at least 10 m shorter than approach_length")
     if config.prediction_horizon > config.decision_period:
         raise ValueError("prediction_horizon (T_f) must not exceed decision_period (T_m)")
-    drive_on = config.mask_drive_on
-    if not isinstance(drive_on, (int, float)) or isinstance(drive_on, bool) or not 0.0 <= drive_on <= 30.0:
-        raise ValueError(f"mask_drive_on must be in [0, 30] m (0: off), got {drive_on!r}")
-    offset = config.rear_axle_offset
-    if not isinstance(offset, (int, float)) or isinstance(offset, bool) or not 0.0 <= offset <= 2.5:
-        raise ValueError(f"rear_axle_offset must be in [0, 2.5] m (the box's rear half), got {offset!r}")
+    require_in_range("mask_drive_on", config.mask_drive_on, 0.0, 30.0, " m (0: off)")
+    require_in_range("rear_axle_offset", config.rear_axle_offset, 0.0, 2.5, " m (the box's rear half)")
     if config.quick_turn_curvature < config.slow_turn_curvature:
         raise ValueError("quick_turn_curvature must be at least slow_turn_curvature")

@@ -96,14 +96,16 @@ def to_frame(points: FloatArray, origin: FloatArray, heading: float) -> FloatArr
     return np.stack((c * dx + s * dy, -s * dx + c * dy), axis=-1)
 
 
-def from_frame(points: FloatArray, origin: FloatArray, heading: float) -> FloatArray:
+def from_frame(
+    points: FloatArray, origin: FloatArray | tuple[FloatArray, FloatArray], heading: FloatArray | float
+) -> FloatArray:
     """Express points (..., 2) given in the frame at ``origin`` rotated by ``heading`` in the world.
 
     The inverse of :func:`to_frame`.
 
     :param points: positions in the frame, last axis (x, y)
-    :param origin: frame origin (x, y)
-    :param heading: frame heading [rad]
+    :param origin: frame origin (x, y); arrays that broadcast with the points give one frame each
+    :param heading: frame heading [rad], a float or an array like the origin's
     :return: the world positions
     """
     c, s = np.cos(heading), np.sin(heading)

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from gccp_envs.action import EgoMotion, EgoState
 from gccp_envs.config import DT, TASKS, IntersectionConfig
-from gccp_envs.geometry import FloatArray, box_corners, poses_to_frame
+from gccp_envs.geometry import FloatArray, box_corners, from_frame, poses_to_frame
 from gccp_envs.scenario import TURN_OFFSET, IntersectionLayout, layout_for
 from gccp_envs.subgoals import SubgoalSampler
 from gccp_envs.traffic import VEHICLE_LENGTH, VEHICLE_WIDTH, Obstacle, Traffic, TrafficTable
@@ -272,7 +272,8 @@ class IntersectionWorld:
         """:meth:`action_mask`, computed."""
         motion, n = self.motion, len(self.motion.curvature)
         next_states = [motion.step(self.ego, action) for action in range(n)]
-        next_step = self._on_road(np.array([(s.x, s.y, s.heading) for s in next_states]))
+        poses = np.array([(s.x, s.y, s.heading) for s in next_states])
+        next_step = self._on_road(poses)
         later = self.config.mask_lookahead - 1
         mask = next_step.copy()
         if later > 0:
@@ -283,7 +284,6 @@ class IntersectionWorld:
         if not mask.any():
             mask = next_step if next_step.any() else np.ones_like(next_step)
         if self.config.mask_drive_on:
-            poses = np.array([(s.x, s.y, s.heading) for s in next_states])
             allowed = mask.copy()
             allowed[mask] = self._can_drive_on(poses[mask])
             if allowed.any():
@@ -304,15 +304,8 @@ class IntersectionWorld:
             if not len(todo):
                 break
             x, y, heading = (poses[todo, k, None, None] for k in range(3))
-            c, s = np.cos(heading), np.sin(heading)
-            world = np.stack(
-                (
-                    x + c * paths[..., 0] - s * paths[..., 1],
-                    y + s * paths[..., 0] + c * paths[..., 1],
-                    heading + paths[..., 2],
-                ),
-                -1,
-            )
+            positions = from_frame(paths[..., :2], (x, y), heading)
+            world = np.concatenate((positions, (heading + paths[..., 2])[..., None]), axis=-1)
             on_road = self._on_road(world.reshape(-1, 3)).reshape(world.shape[:-1])
             passed[todo] = on_road.all(axis=-1).any(axis=-1)
         return passed
