@@ -6,12 +6,14 @@ At every decision where the ego stands (below 0.5 m/s) the scene is one of:
   its stop line for a gap in the crossing streams (nothing the ego can do short of leaving its lane);
 - standoff: a committed car within 10 m stands too, typically because the ego's box reaches its path,
   while the GCCP mask leaves the ego only the candidate under it;
-- other: anything else (waiting for moving traffic).
+- stall: neither, and the decider sent the ego to a subgoal beyond reach (``subgoal_reach_radius``)
+  that the motion-planner does not drive to;
+- other: anything else (the decider holds the ego on the candidate under it, for moving traffic).
 
 A timed-out episode gets the kind it stood longest for if that was at least 10 s, else 'other' (for
 example creeping through the junction too slowly).
 
-Prints one line per timed-out episode and, last, ``timeouts <n> queued <q> standoff <s> other <o>``.
+Prints one line per timed-out episode and, last, ``timeouts <n> queued <q> standoff <s> stall <p> other <o>``.
 
     python benchmarks/timeouts.py --model pretrained --tasks left --episodes-per-task 50 --seed 0
 """
@@ -26,6 +28,7 @@ import numpy as np
 import torch as th
 
 from gccp_envs.config import DT, parse_tasks
+from gccp_envs.rewards import goal_errors
 from gccp_envs.traffic import VEHICLE_LENGTH
 from sb3_gccp.evaluation import run_episode
 from sb3_gccp.hierarchy import load_hierarchy
@@ -39,8 +42,11 @@ LONG_WAIT = 10.0
 """Seconds of standing that explain a timeout."""
 
 
-def waiting_reason(world) -> str | None:  # type: ignore[no-untyped-def]
-    """Why the ego stands still at this step: 'queued', 'standoff', 'other', or None if it moves."""
+def waiting_reason(env: gym.Env) -> str | None:
+    """Why the ego stands still at this step of a decider env: 'queued', 'standoff', 'stall', 'other', or
+    None if it moves."""
+    option_env = env.unwrapped
+    world = option_env.world  # type: ignore[attr-defined]
     ego, traffic = world.ego, world.traffic
     if ego.speed >= STOPPED:
         return None
@@ -54,11 +60,14 @@ def waiting_reason(world) -> str | None:  # type: ignore[no-untyped-def]
         return "queued"
     if (standing & traffic.committed[idx]).any():
         return "standoff"
+    subgoal = option_env.subgoal  # type: ignore[attr-defined]
+    if subgoal is not None and goal_errors(ego, subgoal)[0] > world.config.subgoal_reach_radius:
+        return "stall"
     return "other"
 
 
 def _record(reasons: list[str | None], env: gym.Env) -> None:
-    reasons.append(waiting_reason(env.unwrapped.world))  # type: ignore[attr-defined]
+    reasons.append(waiting_reason(env))
 
 
 def main() -> None:
@@ -76,7 +85,7 @@ def main() -> None:
     th.set_num_threads(1)
     env = hierarchy.make_env()
     policy = hierarchy.decider_policy(env.config)
-    counts = {"queued": 0, "standoff": 0, "other": 0}
+    counts = {"queued": 0, "standoff": 0, "stall": 0, "other": 0}
     decision_s = env.unwrapped.config.decision_period * DT  # type: ignore[attr-defined]
     total = 0
     for task in tasks:

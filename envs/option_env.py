@@ -64,6 +64,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None
         self._masked: np.ndarray | None = None
+        self._subgoal: np.ndarray | None = None
         self._planner_step_callback: PlannerStepCallback | None = None
 
     def set_mask_fn(self, mask_fn: MaskFunction | None) -> None:
@@ -74,6 +75,12 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         """Install (or remove with ``None``) a function called with the env after every planner step of
         an option, so that the world can be followed at 0.1 s rather than once per decision."""
         self._planner_step_callback = callback
+
+    @property
+    def subgoal(self) -> np.ndarray | None:
+        """The subgoal (x, y, heading) of the current or last option in the world frame; None before the
+        first step of an episode."""
+        return None if self._subgoal is None else self._subgoal.copy()
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

@@ -2,21 +2,38 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import yaml
 
-from gccp_envs.action import EgoState
+from gccp_envs.action import EgoAction, EgoState
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scenario import IntersectionLayout
 from gccp_envs.world import IntersectionWorld
 
 EMPTY = IntersectionConfig(spawn_probability=0.0, task="straight")
 """The default world without any traffic."""
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """The script ``benchmarks/<name>.py`` as a module (benchmarks are scripts, not a package)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def always_brake(obs: object, action_mask: object = None) -> int:
+    """A planner that only ever slows down."""
+    return int(EgoAction.SLOW_DOWN)
 
 
 def path_pose(layout: IntersectionLayout, path: int, s: float) -> np.ndarray:

@@ -52,6 +52,7 @@ def test_a_step_runs_the_planner_for_the_decision_period():
     planner = RecordingPlanner(env)
     env.planner = planner
     chosen = env.world.subgoal_candidates()[5].copy()
+    assert env.subgoal is None
     _, _, terminated, truncated, info = env.step(5)
     assert not terminated and not truncated
     assert env.world.steps == 10
@@ -59,7 +60,7 @@ def test_a_step_runs_the_planner_for_the_decision_period():
     assert info["future"].shape == (6, 10, 3) and info["future"].dtype == np.float32
     assert info["future_mask"].shape == (6, 10) and info["future_mask"].dtype == bool
     assert isinstance(info["planner_return"], float)
-    np.testing.assert_array_equal(env._subgoal, chosen)
+    np.testing.assert_array_equal(env.subgoal, chosen)
     # The planner saw the chosen subgoal, from where the ego was at each step, and a 6-action mask.
     first = planner.poses[0]
     np.testing.assert_allclose(planner.goals[0][:2], ego_frame(chosen[:2], *first), atol=1e-3)

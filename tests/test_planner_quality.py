@@ -2,28 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from helpers import always_brake, load_benchmark
 
-from gccp_envs.action import EgoAction
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scripted import SearchPlanner
-
-BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "planner_quality.py"
 
 
 @pytest.fixture(scope="module")
 def planner_quality():
-    spec = importlib.util.spec_from_file_location("planner_quality", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def always_brake(obs, action_mask=None):
-    return int(EgoAction.SLOW_DOWN)
+    return load_benchmark("planner_quality")
 
 
 def test_a_planner_that_never_drives_off_stalls_after_every_stop_in_traffic(planner_quality):
