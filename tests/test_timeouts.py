@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import gymnasium as gym
-import numpy as np
 import pytest
 from helpers import always_brake, load_benchmark
 
-from gccp_envs.scripted import ScriptedPlanner
+from gccp_envs.scripted import FarthestSubgoalDecider, ScriptedPlanner
 
 
 @pytest.fixture(scope="module")
@@ -16,31 +15,26 @@ def timeouts():
 
 
 def standing_start(planner):
+    """A decider env on an empty road whose ego starts at rest, and its first observation."""
     env = gym.make(
         "GCCPDecider-v0", task="straight", spawn_probability=0.0, ego_start_standing=1.0, planner=planner
     )
-    env.reset(seed=0)
-    return env
-
-
-def farthest(env) -> int:
-    subgoals = env.unwrapped.world.subgoal_candidates()
-    ego = env.unwrapped.world.ego
-    return int(np.argmax(np.hypot(subgoals[:, 0] - ego.x, subgoals[:, 1] - ego.y)))
+    obs, _ = env.reset(seed=0)
+    return env, obs
 
 
 def test_a_planner_that_stands_when_sent_beyond_reach_stalls(timeouts):
-    env = standing_start(always_brake)
+    env, obs = standing_start(always_brake)
     assert env.unwrapped.world.ego.speed == 0.0
     assert timeouts.waiting_reason(env) == "other"  # no option yet: nothing was asked of the planner
-    env.step(farthest(env))
+    env.step(FarthestSubgoalDecider()(obs))
     assert env.unwrapped.world.ego.speed == 0.0
     assert timeouts.waiting_reason(env) == "stall"
 
 
 def test_a_planner_that_drives_there_is_not_waiting(timeouts):
-    env = standing_start(None)
+    env, obs = standing_start(None)
     env.unwrapped.planner = ScriptedPlanner(env.unwrapped.config)
-    env.step(farthest(env))
+    env.step(FarthestSubgoalDecider()(obs))
     assert env.unwrapped.world.ego.speed > 0.5
     assert timeouts.waiting_reason(env) is None
