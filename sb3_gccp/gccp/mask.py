@@ -138,8 +138,7 @@ class GCCPMask:
             assert self.yield_checker is not None
             standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)
             allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
-        standing = latest_states(obs, ego=True)[1][0] < YIELD_SPEED
-        if not allowed.any() and self.check.standing_escape and standing:
+        if not allowed.any() and self.check.standing_escape and latest_states(obs, True)[1][0] < YIELD_SPEED:
             first = self.checker.first_collision(future[:, 0], future[:, 1:], present)
             allowed = first == first.max()
         return allowed
