@@ -298,10 +298,6 @@ class IntersectionConfig:
     """Constant of the subgoal-distance term (paper: -0.5)."""
     eps_s: float = 0.05
     """epsilon_s: weight of the distance to the chosen subgoal (paper: 0.05)."""
-    r_fail: float = 0.0
-    """Paid to the decision-maker when the episode ends in a collision, off the road or at a wrong exit
-    (ours; paper: 0, no such term). Without it a collision ends the per-decision costs of waiting, and
-    costs the decider less than a long stand-off."""
 
     def __post_init__(self) -> None:
         _validate(self)

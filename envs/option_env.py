@@ -144,8 +144,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             if outcome.terminal or truncated:
                 break
         paid = reached and (distance > cfg.subgoal_reach_radius or not cfg.r_subgoal_needs_travel)
-        failed = outcome.crashed or outcome.offroad or outcome.wrong_exit
-        terms = decider_reward(cfg, outcome.success, paid, distance, failed)
+        terms = decider_reward(cfg, outcome.success, paid, distance)
         future, future_mask = world.decision_future(record)
         info: dict[str, Any] = {
             "reward_terms": terms,

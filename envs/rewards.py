@@ -51,23 +51,17 @@ def planner_reward(
 
 
 def decider_reward(
-    config: IntersectionConfig,
-    task_reached: bool,
-    subgoal_reached: bool,
-    subgoal_distance: float,
-    failed: bool = False,
+    config: IntersectionConfig, task_reached: bool, subgoal_reached: bool, subgoal_distance: float
 ) -> dict[str, float]:
-    """Terms of r^d = r_goal + r_subgoal + r_subgoal_dist (+ r_fail, ours) for one decision.
+    """Terms of r^d = r_goal + r_subgoal + r_subgoal_dist for one decision.
 
     :param task_reached: whether the task goal was reached during the option
     :param subgoal_reached: whether the subgoal was reached within T_m steps
     :param subgoal_distance: distance [m] from the ego to the chosen subgoal when it was chosen
-    :param failed: whether the episode ended during the option in a collision, off the road or at a wrong exit
     :return: the terms by name; their sum is the reward
     """
     return {
         "r_goal": config.r_goal if task_reached else 0.0,
         "r_subgoal": config.r_subgoal if subgoal_reached else 0.0,
         "r_subgoal_dist": config.r_near + config.eps_s * subgoal_distance,
-        "r_fail": config.r_fail if failed else 0.0,
     }

@@ -168,22 +168,6 @@ def test_a_fallback_margin_checks_again_only_when_no_candidate_passes():
     np.testing.assert_array_equal(fallback(ahead), plain)
 
 
-def test_a_standing_ego_escapes_to_the_candidates_that_collide_latest():
-    # A car 6.5 m behind the ego drives into it, another comes down the next lane, 2.7 m to the side
-    # (inside the 1 m margins): holding collides after 0.3 s, the candidate 4 m ahead after 0.8 s, every
-    # farther one sooner. Nothing passes; a standing ego may take the 4 m candidate, a moving one holds.
-    cars = [(-6.5, 0.0, 0.0, 0.0), (12.0, 2.7, np.pi, 0.0)]
-    standing, moving = scene([(0.0, 0.0, 0.0, 0.0), *cars]), scene([(0.0, 0.0, 0.0, 8.0), *cars])
-    check = GCCPCheck(margin=1.0)
-    assert not GCCPMask(NeighboursGo(), check)(standing).any()
-    escape = GCCPMask(NeighboursGo(), check.replace({"mask_standing_escape": True}))
-    np.testing.assert_array_equal(escape(standing), standing["subgoals"][:, 0] == 4.0)
-    assert not escape(moving).any()
-    # Where a candidate passes, the escape changes nothing.
-    ahead = scene([(0.0, 0.0, 0.0, 0.0), (14.0, 0.0, np.pi, 0.0)])
-    np.testing.assert_array_equal(escape(ahead), GCCPMask(NeighboursGo(), check)(ahead))
-
-
 def test_mask_allows_everything_without_neighbours():
     class Failing(nn.Module):
         def forward(self, obs, goals):

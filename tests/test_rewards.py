@@ -57,13 +57,11 @@ def test_planner_reward_terms():
 
 def test_decider_reward_terms():
     assert decider_reward(CFG, False, False, 0.0) == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5, "r_fail": 0.0}
+        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5}
     )
     assert decider_reward(CFG, True, True, 12.0) == pytest.approx(
-        {"r_goal": 3.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5 + 0.05 * 12.0, "r_fail": 0.0}
+        {"r_goal": 3.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5 + 0.05 * 12.0}
     )
-    assert decider_reward(CFG, False, False, 0.0, failed=True)["r_fail"] == 0.0  # the paper's reward
-    assert decider_reward(CFG.replace(r_fail=-3.0), False, False, 0.0, failed=True)["r_fail"] == -3.0
 
 
 def test_reward_constants_come_from_the_config():
@@ -141,8 +139,8 @@ def test_flat_env_pays_arrival_at_the_task_exit_only():
     assert info["reward_terms"]["r_arr"] == 1.0
 
 
-def decider_env(seed=0, **kwargs):
-    env = gym.make("GCCPDecider-v0", spawn_probability=0.0, task="straight", **kwargs).unwrapped
+def decider_env(seed=0):
+    env = gym.make("GCCPDecider-v0", spawn_probability=0.0, task="straight").unwrapped
     env.reset(seed=seed)
     return env
 
@@ -155,9 +153,7 @@ def test_decider_reward_for_a_reached_subgoal():
     _, reward, terminated, _, info = env.step(0)
     assert not terminated
     assert info["subgoal_reached"]
-    assert info["reward_terms"] == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5, "r_fail": 0.0}
-    )
+    assert info["reward_terms"] == pytest.approx({"r_goal": 0.0, "r_subgoal": 0.5, "r_subgoal_dist": -0.5})
     assert reward == pytest.approx(0.0)
 
 
@@ -170,7 +166,7 @@ def test_decider_reward_for_a_far_subgoal():
     _, reward, _, _, info = env.step(3)
     assert not info["subgoal_reached"]  # a standing start covers about 1 m in 1 s
     assert info["reward_terms"] == pytest.approx(
-        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5 + 0.05 * 15.0, "r_fail": 0.0}, abs=1e-5
+        {"r_goal": 0.0, "r_subgoal": 0.0, "r_subgoal_dist": -0.5 + 0.05 * 15.0}, abs=1e-5
     )
     assert reward == pytest.approx(0.25, abs=1e-5)
 
@@ -183,14 +179,3 @@ def test_decider_reward_for_the_task_goal():
     assert info["is_success"]
     assert info["reward_terms"]["r_goal"] == 3.0
     assert env.world.steps < 10  # the option ended early
-
-
-@pytest.mark.parametrize("r_fail", [0.0, -3.0])
-def test_decider_env_pays_r_fail_for_a_collision(r_fail):
-    env = decider_env(r_fail=r_fail)
-    place_ego_on_path(env.world, 2, 40.0, 5.0)
-    assert env.world.traffic.spawn(2, 44.0, speed=0.0) is not None
-    _, reward, terminated, _, info = env.step(3)
-    assert terminated and info["crashed"]
-    assert info["reward_terms"]["r_fail"] == r_fail
-    assert reward == pytest.approx(sum(info["reward_terms"].values()))

@@ -44,21 +44,22 @@ class CollisionChecker:
             margin,
         )
 
-    def hits(
+    def collides(
         self,
         ego: NDArray[np.floating],
         neighbours: NDArray[np.floating],
         present: NDArray[np.bool_],
         neighbour_sizes: NDArray[np.floating] | None = None,
     ) -> NDArray[np.bool_]:
-        """Where the ego's future under each candidate overlaps a present neighbour's.
+        """Whether the ego's future under each candidate overlaps a present neighbour at some step.
 
         :param ego: the ego's predicted poses (x, y, heading), (N, T, 3)
         :param neighbours: the neighbours' predicted poses, (N, S, T, 3)
         :param present: which neighbours (S,) or neighbour steps (N, S, T) exist
         :param neighbour_sizes: (length, width) per neighbour (S, 2), default ``neighbour_size``
-        :return: (N, S, T) True where candidate i's ego overlaps neighbour j at step t
+        :return: (N,) True where candidate i collides
         """
+        n = neighbours.shape[0]
         length: float | NDArray[np.float64]
         width: float | NDArray[np.float64]
         if neighbour_sizes is None:
@@ -76,26 +77,8 @@ class CollisionChecker:
             hits &= present
         else:
             hits[:, ~present] = False
-        return np.asarray(hits)
-
-    def collides(self, *args: NDArray, **kwargs: NDArray) -> NDArray[np.bool_]:
-        """Whether the ego's future under each candidate overlaps a present neighbour at some step (the
-        arguments of :meth:`hits`).
-
-        :return: (N,) True where candidate i collides
-        """
-        hits = self.hits(*args, **kwargs)
         # reshape + any is several times cheaper than any(axis=(1, 2)) on arrays this small
-        return np.asarray(hits.reshape(len(hits), -1).any(axis=1))
-
-    def first_collision(self, *args: NDArray, **kwargs: NDArray) -> NDArray[np.int64]:
-        """The first step at which the ego's future under each candidate overlaps a present neighbour, T
-        where it never does (the arguments of :meth:`hits`).
-
-        :return: (N,) steps
-        """
-        at = np.asarray(self.hits(*args, **kwargs).any(axis=1))  # (N, T)
-        return np.where(at.any(axis=1), at.argmax(axis=1), at.shape[1])
+        return np.asarray(hits.reshape(n, -1).any(axis=1))
 
     def logit_mask(self, *args: NDArray, **kwargs: NDArray) -> NDArray[np.float32]:
         """The paper's mask m^c: -1e8 for colliding candidates, 0 elsewhere (see :meth:`collides`)."""

@@ -21,24 +21,19 @@ from sb3_gccp.gccp.predictor import STATE_KEYS
 from sb3_gccp.gccp.settings import GCCPCheck
 
 YIELD_SPEED = 0.5
-"""Below this speed [m/s] a vehicle counts as standing (for ``GCCPMask``'s ``yield_margin`` and
-``standing_escape``)."""
+"""Below this speed [m/s] a neighbour counts as standing (for ``GCCPMask``'s ``yield_margin``)."""
 YIELD_REACH = 8.0
 """How far [m] ahead of a standing neighbour's front the ego's box must reach for it to wait for the ego."""
 YIELD_LATERAL = 0.5
 """... and how far [m] beyond its sides."""
 
 
-def latest_states(obs: Mapping[str, np.ndarray], ego: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def latest_states(obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Each neighbour's pose (x, y, heading) in the ego frame, (N_s, 3), and speed, (N_s,), from its last
     real history vector (zeros where absent); the numpy twin of
-    :func:`~sb3_gccp.gccp.predictor.current_poses` for one observation.
-
-    :param ego: also the ego's, as the first row: (N_s + 1, 3) and (N_s + 1,)
-    """
-    rows = slice(0 if ego else 1, None)
-    history = np.asarray(obs["history"])[rows]
-    mask: np.ndarray = np.asarray(obs["history_mask"])[rows] > 0
+    :func:`~sb3_gccp.gccp.predictor.current_poses` for one observation."""
+    history = np.asarray(obs["history"])[1:]
+    mask: np.ndarray = np.asarray(obs["history_mask"])[1:] > 0
     real = np.asarray(mask.any(-1))
     last = np.where(real, mask.shape[-1] - 1 - mask[:, ::-1].argmax(-1), 0)
     state = np.asarray(history[np.arange(len(history)), last, 4:8], np.float64) * real[:, None]
@@ -72,9 +67,7 @@ class GCCPMask:
 
     For one decider observation it predicts the future of the ego and the neighbours under each of
     the N candidates (one batched forward of the predictor) and lets the collision checker compare
-    the ego's future with every present neighbour's. Install it with the env's ``set_mask_fn``. When it
-    allows none, the env holds the ego on the candidate nearest it, unless ``check.standing_escape``
-    lets a standing ego take the candidates whose predicted collision comes latest.
+    the ego's future with every present neighbour's. Install it with the env's ``set_mask_fn``.
 
     :param predictor: a :class:`~sb3_gccp.gccp.predictor.TrajectoryPredictor`,
         :class:`~sb3_gccp.gccp.predictor.ConstantVelocityPredictor` or any module with their call signature
@@ -138,9 +131,6 @@ class GCCPMask:
             assert self.yield_checker is not None
             standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)
             allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
-        if not allowed.any() and self.check.standing_escape and latest_states(obs, True)[1][0] < YIELD_SPEED:
-            first = self.checker.first_collision(future[:, 0], future[:, 1:], present)
-            allowed = first == first.max()
         return allowed
 
 

@@ -1,7 +1,7 @@
 """The GCCP module's settings: the collision check (:class:`GCCPCheck`) and the decider stage's
 schedule and predictor training (:class:`GCCPSettings`, the ``gccp`` map of a zoo entry).
 
-:class:`GCCPCheck` is the one home of the seven ``mask_*`` settings: their defaults, their validation,
+:class:`GCCPCheck` is the one home of the six ``mask_*`` settings: their defaults, their validation,
 their YAML form (the same keys in a zoo entry's ``gccp`` map, in ``hierarchy.yml`` and after
 ``--mask``) and the mask they build (:class:`~sb3_gccp.gccp.mask.GCCPMask` takes one). This module
 imports no torch, so that the command line can name the keys without loading it.
@@ -62,10 +62,6 @@ class GCCPCheck:
     """When no candidate passes the check, not even the hold, check them again with this box margin [m]
     (0: the paper's boxes); null: hold. With a margin every candidate can fail beside a standing car that
     waits for the ego, and holding then waits for ever."""
-    standing_escape: bool = False
-    """When no candidate passes the check (after ``fallback_margin``) and the ego stands (below 0.5 m/s),
-    allow the candidates whose first predicted collision comes latest instead of holding; false: hold.
-    Two standing cars, each in the other's path, otherwise wait for each other until the time limit."""
     vehicle_sizes: str = "simulator"
     """The boxes' sizes before the margin: 'simulator', the ego's and the traffic's in the world checked
     (``gccp_envs.world.vehicle_sizes``), or 'builtin', 5 x 2 m for every vehicle, as in our world (what
@@ -96,7 +92,6 @@ class GCCPCheck:
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
             None if fallback is None else float(fallback),
-            values.get("mask_standing_escape", cls.standing_escape),
             values.get("mask_vehicle_sizes", cls.vehicle_sizes),
         )
 
@@ -135,9 +130,6 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     for key in ("mask_yield_margin", "mask_fallback_margin"):
         if values.get(key) is not None:
             require_non_negative(f"{where}{key}", values[key])
-    escape = values.get("mask_standing_escape", False)
-    if not isinstance(escape, bool):
-        raise ValueError(f"{where}mask_standing_escape must be true or false, got {escape!r}")
     sizes = values.get("mask_vehicle_sizes", GCCPCheck.vehicle_sizes)
     if sizes not in VEHICLE_SIZES:
         expected = ", ".join(VEHICLE_SIZES)
