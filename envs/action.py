@@ -150,12 +150,17 @@ class EgoMotion:
         )
         distance = 0.5 * (speeds + new_speeds) * DT
         turn = self.curvature[actions] * distance
-        dx, dy = self._shift(distance, turn)
-        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-        moved = np.stack(
-            (poses[:, 0] + c * dx - s * dy, poses[:, 1] + s * dx + c * dy, poses[:, 2] + turn), -1
-        )
-        return moved, new_speeds
+        # The chord along the middle heading, as :meth:`_shift` in the world frame. Written so, not by
+        # rotating _shift's (dx, dy): the search planner's rollouts, and with them the planner stage's
+        # expert data, stay the same to the last bit as before the rear-axle offset existed.
+        chord = distance * np.sinc(turn / (2.0 * np.pi))
+        middle = poses[:, 2] + turn / 2.0
+        x, y = poses[:, 0] + chord * np.cos(middle), poses[:, 1] + chord * np.sin(middle)
+        offset = self.config.rear_axle_offset
+        if offset:  # the centre ends ``offset`` ahead of the turning point along the new heading
+            x = x + offset * (np.cos(poses[:, 2] + turn) - np.cos(poses[:, 2]))
+            y = y + offset * (np.sin(poses[:, 2] + turn) - np.sin(poses[:, 2]))
+        return np.stack((x, y, poses[:, 2] + turn), -1), new_speeds
 
     def step(self, state: EgoState, action: int) -> EgoState:
         """The ego state after one step of ``action``."""
