@@ -214,3 +214,19 @@ def test_two_arc_paths_are_the_poses_of_two_held_actions(motion):
     expected = np.concatenate([first, second])
     assert np.abs(paths - expected).max(axis=(1, 2)).min() < 1e-9
     assert len(paths) == len(curvatures) + len(curvatures) * (len(curvatures) - 1) * 9
+
+
+def test_step_many_moves_along_the_chord_of_the_middle_heading_to_the_last_bit():
+    # The search planner's rollouts, and so the planner stage's expert data, depend on the exact floats:
+    # the rotated form x + cos(h) dx - sin(h) dy, equal in exact arithmetic, gave another planner.
+    rng = np.random.default_rng(0)
+    poses = rng.uniform(-30.0, 30.0, (200, 3))
+    speeds = rng.uniform(0.0, 8.0, 200)
+    actions = rng.integers(0, len(MOTION.curvature), 200)
+    moved, new_speeds = MOTION.step_many(poses, speeds, actions)
+    distance = 0.5 * (speeds + new_speeds) * 0.1
+    turn = MOTION.curvature[actions] * distance
+    chord = distance * np.sinc(turn / (2.0 * np.pi))
+    middle = poses[:, 2] + turn / 2.0
+    assert np.array_equal(moved[:, 0], poses[:, 0] + chord * np.cos(middle))
+    assert np.array_equal(moved[:, 1], poses[:, 1] + chord * np.sin(middle))
