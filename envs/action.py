@@ -76,14 +76,18 @@ class EgoMotion:
         dx, dy = self._shift(distance, dheading)
         return np.array([dx, dy, dheading]), new_speed
 
+    @staticmethod
+    def _chord(distance: FloatArray | float, turn: FloatArray | float) -> FloatArray | float:
+        """Length of the chord of an arc of ``distance`` [m] turning ``turn`` [rad]: shorter than the arc
+        by sinc(turn / 2); it points half-way through the turn."""
+        return distance * np.sinc(turn / (2.0 * np.pi))
+
     def _shift(
         self, distance: FloatArray | float, turn: FloatArray | float
     ) -> tuple[FloatArray | float, FloatArray | float]:
         """The box centre's shift (dx, dy) in the ego frame when the turning point drives an arc of
         ``distance`` [m] and ``turn`` [rad] (floats, or arrays of one shape)."""
-        # The chord of an arc of turn dheading is shorter than the arc by sinc(dheading / 2) and points
-        # half-way through the turn.
-        chord = distance * np.sinc(turn / (2.0 * np.pi))
+        chord = self._chord(distance, turn)
         dx, dy = chord * np.cos(turn / 2.0), chord * np.sin(turn / 2.0)
         offset = self.config.rear_axle_offset
         if offset:
@@ -153,7 +157,7 @@ class EgoMotion:
         # The chord along the middle heading, as :meth:`_shift` in the world frame. Written so, not by
         # rotating _shift's (dx, dy): the search planner's rollouts, and with them the planner stage's
         # expert data, stay the same to the last bit as before the rear-axle offset existed.
-        chord = distance * np.sinc(turn / (2.0 * np.pi))
+        chord = self._chord(distance, turn)
         middle = poses[:, 2] + turn / 2.0
         x, y = poses[:, 0] + chord * np.cos(middle), poses[:, 1] + chord * np.sin(middle)
         offset = self.config.rear_axle_offset
