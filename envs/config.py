@@ -70,6 +70,30 @@ def reject_unknown_keys(
         raise ValueError(f"unknown {what} key(s): {', '.join(hints)}")
 
 
+def drop_retired_keys(values: Mapping[str, Any], retired: Mapping[str, Any], what: str) -> dict[str, Any]:
+    """``values`` without the keys that earlier versions wrote and this one no longer has, so that run
+    folders written then still load; each such key must hold the value under which it changed nothing.
+
+    :param values: candidate field values (for example a YAML map)
+    :param retired: each removed key with the value under which it changed nothing
+    :param what: what the keys configure, for the message ("intersection config")
+    :raises ValueError: one line naming a removed key that holds another value
+    """
+    kept = dict(values)
+    for key, neutral in retired.items():
+        if key in kept and (value := kept.pop(key)) != neutral:
+            raise ValueError(
+                f"{what} key {key!r} was removed; a run that set it to {value!r} cannot load "
+                f"(only {neutral!r}, its value that changed nothing)"
+            )
+    return kept
+
+
+RETIRED_KEYS: dict[str, Any] = {"r_fail": 0.0, "r_junction_stand": 0.0}
+"""World keys of decider rewards that were tried, not adopted and removed (docs/experiments/), each with
+the value under which it changed nothing."""
+
+
 def require_int(name: str, value: Any, minimum: int = 1) -> None:
     """Raise ``ValueError`` unless ``value`` is an integer (not a bool) of at least ``minimum`` (0 or 1).
 
@@ -310,7 +334,7 @@ class IntersectionConfig:
         :param overrides: more field values, taking precedence
         :return: the validated config
         """
-        merged = {**(values or {}), **overrides}
+        merged = drop_retired_keys({**(values or {}), **overrides}, RETIRED_KEYS, "intersection config")
         reject_unknown_keys(merged, cls, "intersection config")
         tuples = {k: tuple(v) for k, v in merged.items() if isinstance(v, list)}
         return cls(**{**merged, **tuples})

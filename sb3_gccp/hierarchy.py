@@ -37,13 +37,13 @@ from typing import Any
 
 import yaml
 
-from gccp_envs.config import IntersectionConfig
+from gccp_envs.config import IntersectionConfig, drop_retired_keys
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.constants import DECIDER_FILE, HIERARCHY_FILE, PLANNER_FILE, SCRIPTED
 from sb3_gccp.frozen import FrozenPolicy, load_decider, load_planner
 from sb3_gccp.gccp.mask import GCCPMask
 from sb3_gccp.gccp.predictor import ConstantVelocityPredictor, check_predictor_world, load_predictor
-from sb3_gccp.gccp.settings import CHECK_KEYS, LEARNED, PREDICTORS, GCCPCheck
+from sb3_gccp.gccp.settings import CHECK_KEYS, LEARNED, PREDICTORS, RETIRED_CHECK_KEYS, GCCPCheck
 from sb3_gccp.hyperparams import read_yaml_mapping
 from sb3_gccp.safe_loading import file_in_folder
 from sb3_gccp.training.checkpoints import write_atomically
@@ -128,6 +128,7 @@ class Hierarchy:
         :param where: how messages name the file
         :raises ValueError: one line naming an unknown key or section, or a bad setting
         """
+        spec = drop_retired_keys(spec, RETIRED_CHECK_KEYS, f"{where}: GCCP check")
         unknown = sorted(set(spec) - set(KEYS))
         if unknown:
             raise ValueError(f"{where}: unknown key(s) {', '.join(unknown)}: expected {', '.join(KEYS)}")
@@ -141,7 +142,9 @@ class Hierarchy:
         if not isinstance(overrides, Mapping) or set(overrides) - {"world", "mask"}:
             raise ValueError(f"{where}: {OVERRIDES} must be a map with the keys world and mask")
         world_overrides = dict(overrides.get("world") or {})
-        mask_overrides = dict(overrides.get("mask") or {})
+        mask_overrides = drop_retired_keys(
+            overrides.get("mask") or {}, RETIRED_CHECK_KEYS, f"{where}: GCCP check"
+        )
         unknown = sorted(set(mask_overrides) - set(CHECK_KEYS))
         if unknown:
             raise ValueError(f"{where}: unknown GCCP check key(s) in {OVERRIDES}.mask: {', '.join(unknown)}")

@@ -47,6 +47,16 @@ def test_from_dict_names_unknown_keys_with_close_matches():
     assert "did you mean 'num_subgoals'" in str(info.value)
 
 
+def test_a_removed_key_loads_only_at_the_value_that_changed_nothing():
+    assert IntersectionConfig.from_dict({"r_fail": 0.0, "r_junction_stand": 0, "duration": 20.0}) == (
+        IntersectionConfig(duration=20.0)
+    )
+    with pytest.raises(
+        ValueError, match=r"^intersection config key 'r_fail' was removed; a run that set it to -3\.0"
+    ):
+        IntersectionConfig.from_dict({"r_fail": -3.0})
+
+
 def test_replace_rejects_unknown_keys_like_from_dict():
     with pytest.raises(ValueError, match="did you mean 'spawn_probability'"):
         IntersectionConfig().replace(spawn_probabilty=0.1)

@@ -17,6 +17,11 @@ OURS = IntersectionConfig()
     ("values", "message"),
     [
         ({"n_episode": 5}, "unknown gccp settings key(s): 'n_episode' (did you mean 'n_episodes'?)"),
+        (
+            {"mask_standing_escape": True},
+            "gccp settings key 'mask_standing_escape' was removed; a run that set it to True cannot load "
+            "(only False, its value that changed nothing)",
+        ),
         ({"predictor": "magic"}, "gccp.predictor must be one of learned, no_goal, cv, none, got 'magic'"),
         ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
         ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
@@ -39,6 +44,11 @@ OURS = IntersectionConfig()
 def test_bad_settings_name_the_problem(values, message):
     with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
         GCCPSettings.from_dict(values)
+
+
+def test_a_removed_check_key_at_its_neutral_value_is_dropped():
+    assert GCCPSettings.from_dict({"mask_standing_escape": False}) == GCCPSettings.from_dict({})
+    assert GCCPCheck.from_dict({"mask_standing_escape": False, "mask_margin": 1.0}) == GCCPCheck(margin=1.0)
 
 
 def test_a_check_builds_the_mask_with_its_margin_and_extrapolation():

@@ -155,6 +155,17 @@ def _cv_hierarchy(folder: Path, **settings: object) -> None:
     (folder / "hierarchy.yml").write_text(yaml.safe_dump(spec))
 
 
+def test_a_run_folder_with_a_removed_key_at_its_neutral_value_still_loads(tmp_path):
+    _cv_hierarchy(tmp_path, mask_margin=1.0, mask_standing_escape=False, world={"r_fail": 0.0})
+    hierarchy = load_hierarchy(tmp_path)
+    assert hierarchy.check.margin == 1.0 and "mask_standing_escape" not in hierarchy.to_dict()
+    _cv_hierarchy(tmp_path, mask_standing_escape=True)
+    with pytest.raises(
+        ValueError, match=r"GCCP check key 'mask_standing_escape' was removed; a run that set it to True"
+    ):
+        load_hierarchy(tmp_path)
+
+
 def test_mask_settings_given_at_load_replace_the_hierarchy_files(tmp_path):
     _cv_hierarchy(tmp_path, mask_margin=1.0, mask_extrapolate_steps=10)
     hierarchy = load_hierarchy(tmp_path, {"mask_margin": 0.5, "mask_ego_deceleration": 4})

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from gccp_envs.config import (
     IntersectionConfig,
+    drop_retired_keys,
     reject_unknown_keys,
     require_int,
     require_non_negative,
@@ -78,7 +79,7 @@ class GCCPCheck:
         :param where: what the messages name the keys by (``"gccp."``, ``"hierarchy.yml: "``)
         :raises ValueError: one line naming an unknown key, or the key whose value is not of its kind
         """
-        values = dict(values or {})
+        values = drop_retired_keys(values or {}, RETIRED_CHECK_KEYS, f"{where}GCCP check")
         unknown = sorted(set(values) - set(CHECK_KEYS))
         if unknown:
             expected = ", ".join(CHECK_KEYS)
@@ -116,6 +117,9 @@ class GCCPCheck:
 
 CHECK_KEYS = tuple(CHECK_PREFIX + f.name for f in dataclasses.fields(GCCPCheck))
 """The YAML keys of a :class:`GCCPCheck`, in order: ``mask_margin``, ``mask_extrapolate_steps``, ..."""
+RETIRED_CHECK_KEYS: dict[str, Any] = {"mask_standing_escape": False}
+"""Check keys that were tried, not adopted and removed (docs/experiments/), each with the value under which
+it changed nothing."""
 
 
 def _validate(values: Mapping[str, Any], where: str) -> None:
@@ -188,7 +192,7 @@ class GCCPSettings:
     @classmethod
     def from_dict(cls, values: Mapping[str, Any] | None) -> GCCPSettings:
         """Settings from the ``gccp`` map, rejecting unknown keys by name."""
-        values = dict(values or {})
+        values = drop_retired_keys(values or {}, RETIRED_CHECK_KEYS, "gccp settings")
         known = [f.name for f in dataclasses.fields(cls) if f.name != "check"] + list(CHECK_KEYS)
         reject_unknown_keys(values, cls, "gccp settings", known)
         check = {key: values.pop(key) for key in CHECK_KEYS if key in values}
