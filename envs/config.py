@@ -89,7 +89,7 @@ def drop_retired_keys(values: Mapping[str, Any], retired: Mapping[str, Any], wha
     return kept
 
 
-RETIRED_KEYS: dict[str, Any] = {"r_fail": 0.0, "r_junction_stand": 0.0}
+RETIRED_WORLD_KEYS: dict[str, Any] = {"r_fail": 0.0, "r_junction_stand": 0.0}
 """World keys of decider rewards that were tried, not adopted and removed (docs/experiments/), each with
 the value under which it changed nothing."""
 
@@ -334,7 +334,7 @@ class IntersectionConfig:
         :param overrides: more field values, taking precedence
         :return: the validated config
         """
-        merged = drop_retired_keys({**(values or {}), **overrides}, RETIRED_KEYS, "intersection config")
+        merged = drop_retired_keys({**(values or {}), **overrides}, RETIRED_WORLD_KEYS, "intersection config")
         reject_unknown_keys(merged, cls, "intersection config")
         tuples = {k: tuple(v) for k, v in merged.items() if isinstance(v, list)}
         return cls(**{**merged, **tuples})
