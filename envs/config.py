@@ -280,6 +280,12 @@ class IntersectionConfig:
     """T_m: motion-planner steps per decision (paper: 10)."""
     prediction_horizon: int = 10
     """T_f: future poses predicted per vehicle, at 0.1 s (paper: 10)."""
+    fallback_brakes: bool = False
+    """Option env: when the mask function allows no candidate, the ego brakes ('slow down', where the
+    action mask allows it) until it stands, instead of the planner driving to the nearest candidate, the
+    env's fallback. A planner held on a candidate it has already passed brakes for a few steps and then
+    steers towards it, and a turn holds the speed, so the ego rolled on into the conflict the check had
+    just seen (ours; docs/experiments/2026-11-28-brake-when-nothing-passes.md)."""
     hold_probability: float = 0.05
     """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
     planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
@@ -428,6 +434,7 @@ def _validate(config: IntersectionConfig) -> None:
         require_positive("npc_patience", config.npc_patience)
     for name in (
         "scripted_stop_aligned",
+        "fallback_brakes",
         "r_subgoal_needs_travel",
         "smarts_grid_map",
         "smarts_clear_start",

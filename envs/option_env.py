@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
+from gccp_envs.action import EgoAction
 from gccp_envs.base_env import IntersectionBaseEnv, Obs
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.observation import pose_space, state_spaces
@@ -125,9 +126,14 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         distance = goal_errors(world.ego, self._subgoal)[0]
         reached, planner_return = False, 0.0
         outcome, truncated = StepOutcome(), False
+        brake = cfg.fallback_brakes and self._masked is not None and bool(self._masked.all())
         for _ in range(cfg.decision_period):
-            planner_obs = {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
-            ego_action = int(self.planner(planner_obs, world.action_mask()))
+            allowed = world.action_mask()
+            if brake and world.ego.speed > 0.0 and allowed[EgoAction.SLOW_DOWN]:
+                ego_action = int(EgoAction.SLOW_DOWN)
+            else:
+                planner_obs = {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
+                ego_action = int(self.planner(planner_obs, allowed))
             before = goal_errors(world.ego, self._subgoal)
             outcome = world.step(ego_action)
             if self._planner_step_callback is not None:

@@ -191,3 +191,29 @@ def test_holding_on_the_candidate_under_the_ego_is_paid_only_without_needs_trave
     *_, info = env.step(nearest)
     assert info["subgoal_reached"]
     assert info["reward_terms"]["r_subgoal"] == r_subgoal
+
+
+@pytest.mark.parametrize("brakes", [False, True])
+def test_fallback_brakes_when_no_candidate_passes(brakes):
+    env, _ = make(seed=0, spawn_probability=0.0, fallback_brakes=brakes, mask_fn=lambda o: np.zeros(12, bool))
+    planner = RecordingPlanner(env, inner=lambda obs, mask: int(EgoAction.KEEP_DIRECTION))
+    env.planner = planner
+    start = env.world.ego.speed
+    assert start > 1.0
+    env.step(int(np.flatnonzero(env.action_masks())[0]))
+    if brakes:  # 'slow down' at the world's deceleration until the ego stands; the planner only then
+        expected = max(start - env.config.deceleration * 0.1 * env.config.decision_period, 0.0)
+        assert env.world.ego.speed == pytest.approx(expected)
+        assert len(planner.poses) == 0 if expected > 0 else len(planner.poses) < 10
+    else:
+        assert env.world.ego.speed >= start
+        assert len(planner.poses) == 10
+
+
+def test_fallback_brakes_leave_the_planner_alone_when_a_candidate_passes():
+    env, _ = make(seed=0, spawn_probability=0.0, fallback_brakes=True, mask_fn=lambda o: np.arange(12) < 3)
+    planner = RecordingPlanner(env, inner=lambda obs, mask: int(EgoAction.KEEP_DIRECTION))
+    env.planner = planner
+    start = env.world.ego.speed
+    env.step(int(np.flatnonzero(env.action_masks())[0]))
+    assert len(planner.poses) == 10 and env.world.ego.speed >= start
