@@ -8,6 +8,7 @@ import pytest
 from helpers import ego_frame, place_ego
 
 from gccp_envs.action import EgoAction
+from gccp_envs.config import DT
 from gccp_envs.option_env import GCCPDeciderEnv
 from gccp_envs.scripted import ScriptedPlanner
 
@@ -202,7 +203,7 @@ def test_fallback_brakes_when_no_candidate_passes(brakes):
     assert start > 1.0
     env.step(int(np.flatnonzero(env.action_masks())[0]))
     if brakes:  # 'slow down' at the world's deceleration until the ego stands; the planner only then
-        expected = max(start - env.config.deceleration * 0.1 * env.config.decision_period, 0.0)
+        expected = max(start - env.config.deceleration * DT * env.config.decision_period, 0.0)
         assert env.world.ego.speed == pytest.approx(expected)
         assert len(planner.poses) == 0 if expected > 0 else len(planner.poses) < 10
     else:
