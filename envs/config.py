@@ -286,6 +286,13 @@ class IntersectionConfig:
     env's fallback. A planner held on a candidate it has already passed brakes for a few steps and then
     steers towards it, and a turn holds the speed, so the ego rolled on into the conflict the check had
     just seen (ours; docs/experiments/2026-11-28-brake-when-nothing-passes.md)."""
+    observe_mask: bool = False
+    """Option env: the decision-maker observes the mask function's verdict on each candidate (1: allowed,
+    0: ruled out, before the env's fallback), under the key ``subgoal_allowed``, and its features take it
+    beside each candidate, so that its value sees how much the GCCP check leaves open (paper III-D: the
+    decider observes the state, the task goal and the collision risk mask). Off: the mask reaches the
+    decision-maker only through its logits (ours; a mask function installed mid-episode shows from the
+    next observation on)."""
     hold_probability: float = 0.05
     """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
     planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
@@ -435,6 +442,7 @@ def _validate(config: IntersectionConfig) -> None:
     for name in (
         "scripted_stop_aligned",
         "fallback_brakes",
+        "observe_mask",
         "r_subgoal_needs_travel",
         "smarts_grid_map",
         "smarts_clear_start",

@@ -5,7 +5,8 @@ The action is a subgoal index. The env runs a motion-planner towards that subgoa
 (observation, action mask) to an ego action: the scripted pure-pursuit planner by default, or a
 trained one that the agent package passes in (``sb3_gccp`` wraps its frozen MaskablePPO planner so).
 ``action_masks()`` asks a mask function (the GCCP module) which subgoals are safe; without one, or
-while masks are off, all are.
+while masks are off, all are. With the world key ``observe_mask`` the observation also carries that
+verdict (``subgoal_allowed``), as the paper's decision-maker observes the collision risk mask.
 Each step's ``info`` carries what the predictor's replay buffer needs, as raw features (never
 normalised): the observation the decision was made from (``decision_obs``), the chosen subgoal in
 its ego frame (``subgoal``) and the ground-truth future of the decision (``future``, ``future_mask``:
@@ -34,6 +35,8 @@ Planner = Callable[[Obs, np.ndarray], int]
 """A motion-planner: (planner observation, action mask) -> ego action."""
 MaskFunction = Callable[[Obs], np.ndarray]
 """A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed."""
+VERDICT_KEY = "subgoal_allowed"
+"""Observation key of the mask function's verdict per candidate, with the world key ``observe_mask``."""
 PlannerStepCallback = Callable[["GCCPDeciderEnv"], None]
 """Called with the env after every planner step inside an option."""
 
@@ -41,8 +44,14 @@ PlannerStepCallback = Callable[["GCCPDeciderEnv"], None]
 def decider_spaces(config: IntersectionConfig) -> tuple[spaces.Dict, spaces.Discrete]:
     """The observation and action spaces of the decision-maker on ``config``: N subgoal candidates."""
     n = config.num_subgoals
-    observation = spaces.Dict({**state_spaces(config), "task_goal": pose_space(), "subgoals": pose_space(n)})
-    return observation, spaces.Discrete(n)
+    observation: dict[str, spaces.Space] = {
+        **state_spaces(config),
+        "task_goal": pose_space(),
+        "subgoals": pose_space(n),
+    }
+    if config.observe_mask:
+        observation[VERDICT_KEY] = spaces.Box(0.0, 1.0, (n,), np.float32)
+    return spaces.Dict(observation), spaces.Discrete(n)
 
 
 class GCCPDeciderEnv(IntersectionBaseEnv):
@@ -65,6 +74,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None
         self._masked: np.ndarray | None = None
+        self._verdict = np.ones(self.config.num_subgoals, bool)
         self._subgoal: np.ndarray | None = None
         self._planner_step_callback: PlannerStepCallback | None = None
 
@@ -95,20 +105,32 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
 
     def _observe(self) -> Obs:
         world = self.world
-        return {
+        obs = {
             **self._state(),
             "task_goal": self._in_ego_frame(world.task_goal),
             "subgoals": self._in_ego_frame(world.subgoal_candidates()),
         }
+        if self.config.observe_mask:
+            self._verdict = self._check(obs)
+            obs[VERDICT_KEY] = self._verdict.astype(np.float32)
+        return obs
+
+    def _check(self, obs: Obs) -> np.ndarray:
+        """The mask function's verdict on ``obs``: (N,) bool, True where allowed; all True without one."""
+        n = self.config.num_subgoals
+        if self.mask_fn is None:
+            return np.ones(n, bool)
+        return np.asarray(self.mask_fn(obs), bool).reshape(n)
 
     def action_masks(self) -> np.ndarray:
         """Allowed subgoals. If the mask function allows none, only the nearest candidate is allowed:
-        holding back is the least risky choice when every subgoal is predicted to collide."""
+        holding back is the least risky choice when every subgoal is predicted to collide. With
+        ``observe_mask`` the verdict is the one the observation shows."""
         n = self.config.num_subgoals
-        if self.mask_fn is None or self._last_obs is None:
+        if self._last_obs is None:
             self._masked = np.zeros(n, bool)
             return np.ones(n, bool)
-        mask = np.asarray(self.mask_fn(self._last_obs), bool).reshape(n)
+        mask = self._verdict if self.config.observe_mask else self._check(self._last_obs)
         self._masked = ~mask
         if not mask.any():
             mask = np.zeros(n, bool)

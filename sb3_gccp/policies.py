@@ -27,6 +27,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from gccp_envs.option_env import VERDICT_KEY
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
 
 PLANNER_NET_ARCH = {"pi": [256, 256], "vf": [256, 256]}
@@ -105,6 +106,9 @@ class MotionPlannerPolicy(MaskableActorCriticPolicy):
 class DeciderFeaturesExtractor(BaseFeaturesExtractor):
     """The decision-maker's state feature (ego feature with the task goal) and N subgoal features.
 
+    A subgoal's feature encodes its pose and, when the observation carries it (world key
+    ``observe_mask``), the GCCP check's verdict on it.
+
     Output: ``[state (5L), subgoal_0 (L), ..., subgoal_{N-1} (L)]``, flattened.
 
     :param observation_space: the decider env's Dict space (state arrays, ``task_goal``, ``subgoals``)
@@ -118,7 +122,10 @@ class DeciderFeaturesExtractor(BaseFeaturesExtractor):
         hidden = config.hidden_size
         super().__init__(observation_space, features_dim=5 * hidden + self.num_subgoals * hidden)
         self.encoder = _scene_encoder(observation_space, config)
-        self.subgoal_encoder = nn.Sequential(nn.Linear(3, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
+        self.observes_verdict = VERDICT_KEY in observation_space.spaces
+        self.subgoal_encoder = nn.Sequential(
+            nn.Linear(3 + self.observes_verdict, hidden), nn.ReLU(), nn.Linear(hidden, hidden)
+        )
         self.state_size, self.subgoal_size = 5 * hidden, hidden
 
     def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
@@ -129,8 +136,10 @@ class DeciderFeaturesExtractor(BaseFeaturesExtractor):
         """
         scene = self.encoder.encode(observations)
         state = self.encoder.ego_features(scene, self.encoder.goal_features(observations["task_goal"]))
-        subgoals = self.subgoal_encoder(observations["subgoals"] * self.encoder.goal_scale)
-        return th.cat((state, subgoals.flatten(1)), -1)
+        subgoals = observations["subgoals"] * self.encoder.goal_scale
+        if self.observes_verdict:
+            subgoals = th.cat((subgoals, observations[VERDICT_KEY][..., None]), -1)
+        return th.cat((state, self.subgoal_encoder(subgoals).flatten(1)), -1)
 
 
 class SubgoalHeads(nn.Module):

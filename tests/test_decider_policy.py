@@ -52,6 +52,19 @@ def test_features_are_the_state_feature_then_one_feature_per_subgoal(env, batch)
     th.testing.assert_close(out[:, 80:96], first)
 
 
+def test_the_checks_verdict_enters_each_subgoal_feature():
+    env = gym.make("GCCPDecider-v0", spawn_probability=0.02, observe_mask=True)
+    obs, _ = env.reset(seed=1)
+    extractor = DeciderFeaturesExtractor(env.observation_space, encoder=TINY_ENCODER)
+    closed = {**obs, "subgoal_allowed": np.where(np.arange(12) == 4, 0.0, 1.0).astype(np.float32)}
+    raw = {key: np.stack([obs[key], closed[key]]) for key in obs}
+    out = extractor(preprocess_obs(obs_as_tensor(raw, "cpu"), env.observation_space))
+    per_subgoal = (out[0, 80:] - out[1, 80:]).abs().view(12, 16).sum(-1)
+    assert per_subgoal[4] > 0
+    assert per_subgoal[np.arange(12) != 4].max() == 0
+    th.testing.assert_close(out[0, :80], out[1, :80])
+
+
 def test_default_heads_have_the_papers_depths(env):
     policy = policy_for(env)
     heads = policy.mlp_extractor

@@ -218,3 +218,25 @@ def test_fallback_brakes_leave_the_planner_alone_when_a_candidate_passes():
     start = env.world.ego.speed
     env.step(int(np.flatnonzero(env.action_masks())[0]))
     assert len(planner.poses) == 10 and env.world.ego.speed >= start
+
+
+def test_observe_mask_shows_the_verdict_the_action_mask_uses():
+    verdict = np.arange(12) % 3 == 0
+    env, obs = make(seed=0, observe_mask=True, mask_fn=lambda o: verdict)
+    assert env.observation_space["subgoal_allowed"].shape == (12,)
+    assert env.observation_space.contains(obs)
+    np.testing.assert_array_equal(obs["subgoal_allowed"], verdict.astype(np.float32))
+    np.testing.assert_array_equal(env.action_masks(), verdict)
+    obs, *_ = env.step(0)
+    np.testing.assert_array_equal(obs["subgoal_allowed"], verdict.astype(np.float32))
+
+
+def test_observe_mask_shows_a_closed_check_before_the_fallback():
+    env, obs = make(seed=0, observe_mask=True, mask_fn=lambda o: np.zeros(12, bool))
+    assert not obs["subgoal_allowed"].any()
+    assert env.action_masks().sum() == 1  # the env still falls back to the nearest candidate
+
+
+def test_without_observe_mask_the_observation_has_no_verdict():
+    env, obs = make(seed=0, mask_fn=lambda o: np.ones(12, bool))
+    assert "subgoal_allowed" not in obs and "subgoal_allowed" not in env.observation_space.spaces
