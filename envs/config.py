@@ -289,10 +289,10 @@ class IntersectionConfig:
     observe_mask: bool = False
     """Option env: the decision-maker observes the mask function's verdict on each candidate (1: allowed,
     0: ruled out, before the env's fallback), under the key ``subgoal_allowed``, and its features take it
-    beside each candidate, so that its value sees how much the GCCP check leaves open (paper III-D: the
-    decider observes the state, the task goal and the collision risk mask). Off: the mask reaches the
-    decision-maker only through its logits (ours; a mask function installed mid-episode shows from the
-    next observation on)."""
+    beside each candidate, so that its value sees how much the GCCP check leaves open. Off: the mask
+    reaches the decision-maker only through its logits (paper III-D says that the decider observes the
+    mask, and defines its state without it; a mask function installed mid-episode shows from the next
+    observation on; docs/experiments/2026-11-29-the-decider-observes-the-mask.md)."""
     hold_probability: float = 0.05
     """Planner env: chance that a new subgoal is a 'hold' (the candidate nearest the ego), so that the
     planner learns to stop where the decision-maker holds it (paper: not given; 0 = always uniform)."""
