@@ -243,7 +243,7 @@ def test_quick_preset_shrinks_every_network_and_merges_dotted_overrides():
     assert dqn["n_timesteps"] == 6 * 50
     ours = method_settings(METHODS["ours"], quick)
     assert ours["policy_kwargs"]["encoder"] == ours["gccp"]["predictor_kwargs"]["encoder"] == quick.encoder
-    entry = yaml.safe_load(default_config_file("ppo_mask.yml").read_text())["GCCPDecider-v0"]
+    entry = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPDecider-v0")
     assert ours["env_kwargs"] == {**entry["env_kwargs"], "duration": 5.0}
 
 
