@@ -57,6 +57,9 @@ def reject_unknown_keys(
     :raises ValueError: one line listing the unknown keys, each with its closest field name if any
     """
     known = {f.name for f in fields(config_class)} if known is None else set(known)
+    not_names = [key for key in values if not isinstance(key, str)]
+    if not_names:
+        raise ValueError(f"{what} keys are names, got {', '.join(repr(key) for key in not_names)}")
     unknown = sorted(set(values) - known)
     if unknown:
         hints = [
@@ -454,7 +457,10 @@ def _validate(config: IntersectionConfig) -> None:
         require_in_range(name, getattr(config, name), 0.0, 1.0)
     for name in ("ego_start_distance", "ego_start_speed", "npc_speed_range", "npc_time_headway"):
         low_high = getattr(config, name)
-        if len(low_high) != 2 or not 0 <= low_high[0] <= low_high[1]:
+        numbers = isinstance(low_high, (list, tuple)) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in low_high
+        )
+        if not numbers or len(low_high) != 2 or not 0 <= low_high[0] <= low_high[1]:
             raise ValueError(f"{name} must be a (low, high) pair with 0 <= low <= high, got {low_high!r}")
     if config.ego_start_distance[1] > config.approach_length - 10.0:
         raise ValueError("ego_start_distance must leave at least 10 m of approach behind the ego")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import NoReturn
 
 from sb3_gccp.commands import config, evaluate, export, reproduce, rollout, train, tune, video
 from sb3_gccp.commands.common import CLIError
@@ -19,9 +20,18 @@ COMMANDS = (rollout, train, evaluate, video, reproduce, tune, export, config)
 """The command modules, in the order ``--help`` lists them."""
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line, as the commands' own input errors are (its
+    sub-command parsers are of its class too)."""
+
+    def error(self, message: str) -> NoReturn:
+        """Exit with status 2 and one line naming the problem, instead of the usage block and the line."""
+        self.exit(2, f"sb3_gccp: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``sb3_gccp``."""
-    parser = argparse.ArgumentParser(prog="sb3_gccp", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="sb3_gccp", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(commands)

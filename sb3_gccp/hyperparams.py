@@ -165,9 +165,15 @@ def resolve_schedule(value: Any, key: str, gradient_steps_per_timestep: float, n
 
 
 def ppo_gradient_steps_per_timestep(settings: Mapping[str, Any], defaults: Mapping[str, Any]) -> float:
-    """Optimiser steps of (Maskable)PPO per environment step: n_epochs / batch_size."""
-    n_epochs = int(settings.get("n_epochs", defaults["n_epochs"]))
-    batch_size = int(settings.get("batch_size", defaults["batch_size"]))
+    """Optimiser steps of (Maskable)PPO per environment step: n_epochs / batch_size.
+
+    :raises HyperparamsError: ``n_epochs`` under 1 or ``batch_size`` under 2 (PPO's own minimum)
+    """
+    n_epochs = settings.get("n_epochs", defaults["n_epochs"])
+    batch_size = settings.get("batch_size", defaults["batch_size"])
+    for key, value, minimum in (("n_epochs", n_epochs, 1), ("batch_size", batch_size, 2)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+            raise HyperparamsError(f"{key} must be an integer of at least {minimum}, got {value!r}")
     return n_epochs / batch_size
 
 

@@ -115,6 +115,8 @@ class EncoderConfig:
         :param values: field values; missing fields keep their defaults
         :return: the validated config
         """
+        if values is not None and not isinstance(values, Mapping):
+            raise ValueError(f"the encoder config is a map of its keys, got {values!r}")
         values = dict(values or {})
         reject_unknown_keys(values, cls, "encoder config")
         if isinstance(values.get("bev_channels"), list):

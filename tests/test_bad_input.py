@@ -9,9 +9,16 @@ from pathlib import Path
 from typing import Any
 
 import cloudpickle
+import numpy as np
 import pytest
 import yaml
-from helpers import TINY_ENCODER, TINY_WORLD, rewrite_zip_data, save_tiny_models
+from helpers import (
+    TINY_ENCODER,
+    TINY_PLANNER_HYPERPARAMS,
+    TINY_WORLD,
+    rewrite_zip_data,
+    save_tiny_models,
+)
 
 from sb3_gccp.cli import main
 
@@ -213,3 +220,132 @@ def test_reproduce_refuses_a_planner_of_the_wrong_kind_before_writing(models, tm
         capsys, [*args, "--out", str(out), "--log-folder", str(runs)], "decider.zip is not a motion-planner"
     )
     assert not out.exists() and not runs.exists()
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    """The one stderr line of a command that must fail with status 2, whether argparse or the command
+    itself rejects the input."""
+    try:
+        status = main(argv)
+    except SystemExit as stop:
+        status = stop.code
+    assert status == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("sb3_gccp: error: ")
+    return line
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["rollout", "--seed", "-1"],
+        ["evaluate", "--model", str(PRETRAINED), "--seed", "-1"],
+        ["video", "--model", str(PRETRAINED), "--out", "x.gif", "--seed", "x"],
+        ["train", "--stage", "planner", "--seed", "-1"],
+        ["reproduce", "--seeds", "0", "-2"],
+        ["reproduce", "--eval-seed", "-5"],
+        ["tune", "--method", "ppo", "--episodes-per-trial", "1", "--seed", "-1"],
+    ],
+)
+def test_a_seed_below_zero_is_refused_before_any_work(capsys, tmp_path, monkeypatch, argv):
+    monkeypatch.chdir(tmp_path)
+    line = one_line_error(capsys, argv)
+    assert "a seed is a whole number >= 0" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_usage_error_is_one_line_that_points_to_help(capsys):
+    line = one_line_error(capsys, ["rollout", "--episodes-per-task", "abc"])
+    assert "invalid int value: 'abc'" in line and "see `sb3_gccp rollout --help`" in line
+
+
+@pytest.mark.parametrize(
+    "assignment, message",
+    [
+        ("npc_speed_range=5", "npc_speed_range must be a (low, high) pair with 0 <= low <= high, got 5"),
+        ("npc_speed_range=[1, x]", "npc_speed_range must be a (low, high) pair"),
+    ],
+)
+def test_a_pair_key_given_something_else_is_named(capsys, assignment, message):
+    assert message in one_line_error(capsys, ["config", "--set", assignment])
+
+
+def test_a_world_file_with_a_key_that_is_no_name_is_named(capsys, tmp_path):
+    config = tmp_path / "world.yml"
+    config.write_text("1: 2\n")
+    assert "intersection config keys are names, got 1" in one_line_error(
+        capsys, ["config", "--config", str(config)]
+    )
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"policy": "NoSuchPolicy"}, "unknown class name 'NoSuchPolicy'"),
+        ({"batch_size": 0}, "batch_size must be an integer of at least 2, got 0"),
+        ({"n_epochs": 0}, "n_epochs must be an integer of at least 1, got 0"),
+    ],
+)
+def test_settings_only_the_model_rejects_leave_no_run_folder(capsys, tmp_path, change, message):
+    entry = {**TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"], **change}
+    config = tmp_path / "planner.yml"
+    config.write_text(yaml.safe_dump({"GCCPPlanner-v0": entry}))
+    argv = ["train", "--stage", "planner", "--config", str(config), "--log-folder", str(tmp_path / "runs")]
+    assert message in one_line_error(capsys, [*argv, "--no-progress"])
+    assert not list((tmp_path / "runs").rglob("*.yml"))  # no run folder that --resume would take
+
+
+@pytest.mark.parametrize("arrays", [{"future": np.zeros(3)}, None])
+def test_a_file_that_is_no_replay_buffer_leaves_no_predictor_run(capsys, tmp_path, arrays):
+    buffer = tmp_path / "buffer.npz"
+    if arrays is None:
+        buffer.write_bytes(b"not a numpy file")
+    else:
+        np.savez(buffer, **arrays)  # a valid .npz without the buffer's capacity
+    argv = ["train", "--stage", "predictor", "--buffer", str(buffer), "--log-folder", str(tmp_path / "runs")]
+    assert "is not a replay buffer saved by sb3_gccp" in one_line_error(capsys, argv)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_predictor_setting_of_the_wrong_kind_is_named(capsys, tmp_path):
+    argv = ["train", "--stage", "predictor", "--planner", "scripted", "--predictor-set", "encoder=5"]
+    line = one_line_error(capsys, [*argv, "--log-folder", str(tmp_path / "runs")])
+    assert "the encoder config is a map of its keys, got 5" in line
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_tune_storage_that_cannot_be_opened_leaves_no_output_folder(capsys, tmp_path):
+    argv = ["tune", "--method", "ppo", "--episodes-per-trial", "1", "--storage", "bogus://x"]
+    one_line_error(capsys, [*argv, "--out", str(tmp_path / "tune")])
+    assert not (tmp_path / "tune").exists()
+
+
+def test_reproduce_into_a_file_writes_nothing(capsys, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    argv = ["reproduce", "--preset", "quick", "--methods", "ppo", "--out", str(afile)]
+    line = one_line_error(capsys, [*argv, "--log-folder", str(tmp_path / "runs")])
+    assert "a file, not a folder" in line
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["video", "--model", str(PRETRAINED), "--out", "x.gif", "--fps", "nan"],
+            "--fps must be a number in",
+        ),
+        (
+            ["video", "--model", str(PRETRAINED), "--out", "x.gif", "--fps", "inf"],
+            "--fps must be a number in",
+        ),
+        (["rollout", "--gif", "out.txt"], "--gif out.txt: the file name must end in .gif"),
+    ],
+)
+def test_an_output_option_that_could_only_fail_at_the_end_fails_first(
+    capsys, tmp_path, monkeypatch, argv, message
+):
+    monkeypatch.chdir(tmp_path)
+    assert message in one_line_error(capsys, argv)
+    assert list(tmp_path.iterdir()) == []

@@ -58,6 +58,18 @@ def parse_assignments(assignments: list[str], flag: str = "--set") -> dict[str, 
     return values
 
 
+def seed_value(text: str) -> int:
+    """A seed given on the command line (an argparse ``type``): a whole number, 0 or more, as gymnasium and
+    numpy take them."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a seed is a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a seed is a whole number >= 0, got {value}")
+    return value
+
+
 def parse_tasks(text: str) -> list[str]:
     """Comma-separated task names, validated (see :func:`gccp_envs.config.parse_tasks`)."""
     try:

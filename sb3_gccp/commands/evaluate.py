@@ -16,6 +16,7 @@ from sb3_gccp.commands.common import (
     check_output_path,
     parse_assignments,
     parse_tasks,
+    seed_value,
     write_results,
 )
 
@@ -33,7 +34,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
     parser.add_argument("--episodes-per-task", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=0, help="first traffic seed")
+    parser.add_argument("--seed", type=seed_value, default=0, help="first traffic seed")
     parser.add_argument("--json", help="also write the table and every episode to this JSON file")
     parser.add_argument(
         "--stochastic",

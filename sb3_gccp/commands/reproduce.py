@@ -8,7 +8,7 @@ import signal
 import sys
 from pathlib import Path
 
-from sb3_gccp.commands.common import CLIError, add_torch_threads, parse_assignments
+from sb3_gccp.commands.common import CLIError, add_torch_threads, parse_assignments, seed_value
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -21,7 +21,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         default="paper",
         help="budgets: quick (the whole pipeline in minutes) or paper (the paper's, hours per seed)",
     )
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (default: 0)")
+    parser.add_argument(
+        "--seeds", type=seed_value, nargs="+", default=[0], help="training seeds (default: 0)"
+    )
     parser.add_argument(
         "--methods",
         nargs="+",
@@ -44,7 +46,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--log-folder", default="runs", help="runs go to LOG_FOLDER/reproduce/PRESET/seedK/METHOD"
     )
-    parser.add_argument("--eval-seed", type=int, default=0, help="first traffic seed of the evaluation")
+    parser.add_argument(
+        "--eval-seed", type=seed_value, default=0, help="first traffic seed of the evaluation"
+    )
     parser.add_argument(
         "--jobs",
         type=int,

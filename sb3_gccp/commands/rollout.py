@@ -13,6 +13,7 @@ from sb3_gccp.commands.common import (
     check_output_path,
     load_world_config,
     parse_tasks,
+    seed_value,
     write_results,
 )
 
@@ -22,7 +23,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser("rollout", help="play seeded episodes with the scripted hierarchy")
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
     parser.add_argument("--episodes-per-task", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=0, help="first traffic seed")
+    parser.add_argument("--seed", type=seed_value, default=0, help="first traffic seed")
     parser.add_argument("--json", help="also write the table and every episode to this JSON file")
     parser.add_argument("--gif", help="also write a GIF of the first task's first episode")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -42,6 +43,8 @@ def run(args: argparse.Namespace) -> None:
         raise CLIError("--episodes-per-task must be at least 1")
     check_output_path(args.json, "--json")
     check_output_path(args.gif, "--gif")
+    if args.gif is not None and not args.gif.lower().endswith(".gif"):
+        raise CLIError(f"--gif {args.gif}: the file name must end in .gif")
     env = GCCPDeciderEnv(config)
     decider = FarthestSubgoalDecider()
     results = evaluate(env, decider, tasks, args.episodes_per_task, args.seed, progress=not args.no_progress)

@@ -14,6 +14,7 @@ from sb3_gccp.commands.common import (
     add_torch_threads,
     load_world_config,
     parse_assignments,
+    seed_value,
 )
 
 
@@ -29,7 +30,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "all: planner then decider",
     )
     parser.add_argument("--config", help="zoo-style YAML (default: zoo_configs/ppo_mask.yml)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed_value, default=0)
     parser.add_argument("-n", "--n-timesteps", type=int, help="override the file's n_timesteps")
     parser.add_argument("--log-folder", default="runs", help="runs go to LOG_FOLDER/STAGE/ENV_SEED_TIME")
     parser.add_argument(

@@ -4,11 +4,12 @@ a fixed episode budget per trial; write the best trial as a zoo entry."""
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sb3_gccp.commands.common import CLIError, add_torch_threads
+from sb3_gccp.commands.common import CLIError, add_torch_threads, seed_value
 from sb3_gccp.constants import SCRIPTED
 
 if TYPE_CHECKING:
@@ -52,7 +53,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="zoo file whose entry trials start from (default: the shipped one, zoo_configs/METHOD.yml or "
         "ppo_mask.yml for the decider)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="training seed of every trial (default 0)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="training seed of every trial (default 0)")
     parser.add_argument("--out", default="tune", help="storage, trial run folders and best.yml go here")
     parser.add_argument(
         "--planner",
@@ -115,12 +116,14 @@ def prepare(args: argparse.Namespace) -> Study:
         raise CLIError("--planner is the decider's: the baselines drive the flat env themselves")
     out = Path(args.out)
     name = args.study_name or method.name
+    made: list[Path] = []
     try:
         entry = method.base_entry(Path(args.config) if args.config else None)
         method.check_entry(entry)
         space_file = Path(args.space) if args.space else default_config_file(f"tune/{method.name}.yml")
         space = SearchSpace.from_file(space_file, lambda key: method.check_key(key, entry))
         method.check_space(space, entry, args.episodes_per_trial)
+        made = [folder for folder in (out, out / name) if not folder.exists()]
         out.mkdir(parents=True, exist_ok=True)
         (out / name).mkdir(exist_ok=True)
         trials = TrialSettings(
@@ -138,6 +141,8 @@ def prepare(args: argparse.Namespace) -> Study:
         study = Study(name, storage, args.n_trials, trials, args.n_jobs, not args.no_progress)
         open_study(study)  # a storage that cannot be opened, or a study of other settings, fails here
     except (HyperparamsError, ValueError, TypeError, OSError) as err:
+        for folder in made:  # no half-made output folder is left
+            shutil.rmtree(folder, ignore_errors=True)
         raise CLIError(str(err)) from err
     return study
 

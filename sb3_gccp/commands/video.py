@@ -13,6 +13,7 @@ from sb3_gccp.commands.common import (
     add_trust_pickle,
     add_world_overrides,
     parse_assignments,
+    seed_value,
 )
 
 
@@ -23,7 +24,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--model", required=True, help="a decider run folder, pretrained/, or a decider .zip inside one"
     )
     parser.add_argument("--task", default="left", help="left, straight or right")
-    parser.add_argument("--seed", type=int, default=0, help="traffic seed")
+    parser.add_argument("--seed", type=seed_value, default=0, help="traffic seed")
     parser.add_argument("--out", required=True, help="the video file: .gif, or .mp4 (needs imageio-ffmpeg)")
     parser.add_argument(
         "--max-steps", type=int, help="stop after this many 0.1 s steps (default: the episode)"
@@ -47,8 +48,8 @@ def run(args: argparse.Namespace) -> None:
         raise CLIError(f"unknown task {args.task!r}: expected one of {', '.join(TASKS)}")
     if args.max_steps is not None and args.max_steps < 1:
         raise CLIError("--max-steps must be at least 1")
-    if args.fps <= 0:
-        raise CLIError("--fps must be positive")
+    if not 0 < args.fps <= 1000:
+        raise CLIError(f"--fps must be a number in (0, 1000], got {args.fps:g}")
     th.set_num_threads(1)  # the networks are small: more threads only add overhead
     try:
         check_video_path(args.out)

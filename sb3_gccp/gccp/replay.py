@@ -22,6 +22,7 @@ import torch as th
 
 from sb3_gccp.gccp.predictor import STATE_KEYS
 from sb3_gccp.progress import new_bar
+from sb3_gccp.safe_loading import first_line
 
 MASK_KEYS = ("history_mask", "routes_mask")
 """State keys holding 0/1 masks, stored as bool."""
@@ -144,12 +145,16 @@ class EpisodeReplayBuffer:
         :param path: the ``.npz`` file
         :param capacity: capacity of the new buffer (default: the saved one); a smaller one keeps the newest
         :return: the buffer
+        :raises ValueError: one line, when the file is no replay buffer written by :meth:`save`
         """
-        with np.load(path) as saved:
-            buffer = cls(int(saved["capacity"]) if capacity is None else capacity)
-            stored = {key: saved[key] for key in saved.files if key != "capacity"}
-        if stored and len(stored["future"]):
-            buffer._write(stored)
+        try:
+            with np.load(path) as saved:
+                buffer = cls(int(saved["capacity"]) if capacity is None else capacity)
+                stored = {key: saved[key] for key in saved.files if key != "capacity"}
+            if stored and len(stored["future"]):
+                buffer._write(stored)
+        except Exception as err:  # numpy's reader, a missing array and a bad shape raise many kinds
+            raise ValueError(f"{path} is not a replay buffer saved by sb3_gccp: {first_line(err)}") from err
         return buffer
 
 

@@ -404,6 +404,8 @@ def prepare(request: ReproduceRequest, collect: bool = False) -> Plan:
         check_settings(None, entry)
         files["planner"] = {PLANNER_ENV_ID: entry}
     _check_same_preset(root, preset)
+    if request.out.exists() and not request.out.is_dir():
+        raise ValueError(f"--out {request.out}: a file, not a folder")
 
     if not collect:
         root.mkdir(parents=True, exist_ok=True)

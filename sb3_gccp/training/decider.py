@@ -65,6 +65,7 @@ from sb3_gccp.training.run_folder import (
     new_model,
     open_run,
     prepare_run_folder,
+    removed_if_setup_fails,
     requested_settings,
     resume_checkpoint,
     run_budget,
@@ -130,26 +131,27 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
     planner = request.planner
     copies = {} if scripted or planner is None else {PLANNER_FILE: partial(shutil.copyfile, planner)}
     prepare_run_folder(run, request, checkpoint, copies)
-    env = make_run_env(
-        make_decider_env,
-        n_envs,
-        run.seed,
-        {
-            "config": world,
-            "planner_path": None if scripted else str((run.dir / PLANNER_FILE).resolve()),
-            "torch_threads": 1 if n_envs > 1 else None,
-        },
-        run.dir,
-        append=model is not None,
-        subprocesses=True,
-    )
-    if model is None:
-        kwargs = algorithm_kwargs(
-            {k: v for k, v in run.settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+    with removed_if_setup_fails(run):
+        env = make_run_env(
+            make_decider_env,
+            n_envs,
+            run.seed,
+            {
+                "config": world,
+                "planner_path": None if scripted else str((run.dir / PLANNER_FILE).resolve()),
+                "torch_threads": 1 if n_envs > 1 else None,
+            },
+            run.dir,
+            append=model is not None,
+            subprocesses=True,
         )
-        model = new_model(env, run, kwargs)
-    else:
-        continue_model(model, env, run)
+        if model is None:
+            kwargs = algorithm_kwargs(
+                {k: v for k, v in run.settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+            )
+            model = new_model(env, run, kwargs)
+        else:
+            continue_model(model, env, run)
     try:
         if gccp_callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
             model.learn(

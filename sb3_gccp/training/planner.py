@@ -32,6 +32,7 @@ from sb3_gccp.training.run_folder import (
     new_model,
     open_run,
     prepare_run_folder,
+    removed_if_setup_fails,
     resume_checkpoint,
     run_budget,
 )
@@ -54,12 +55,15 @@ def train_planner(request: StageRequest) -> Path:
     checkpoint = resume_checkpoint(run)
     model = None if checkpoint is None else load_model(checkpoint.file(PLANNER_FILE), run)
     prepare_run_folder(run, request, checkpoint)
-    env = make_run_env(PLANNER_ENV_ID, n_envs, run.seed, {"config": world}, run.dir, append=model is not None)
-    if model is None:
-        ppo_settings = {k: v for k, v in run.settings.items() if k != IMITATION_KEY}
-        model = new_model(env, run, algorithm_kwargs(ppo_settings, n_timesteps))
-    else:
-        continue_model(model, env, run)
+    with removed_if_setup_fails(run):
+        env = make_run_env(
+            PLANNER_ENV_ID, n_envs, run.seed, {"config": world}, run.dir, append=model is not None
+        )
+        if model is None:
+            ppo_settings = {k: v for k, v in run.settings.items() if k != IMITATION_KEY}
+            model = new_model(env, run, algorithm_kwargs(ppo_settings, n_timesteps))
+        else:
+            continue_model(model, env, run)
     callbacks: list[BaseCallback] = [
         ModelCheckpointCallback(run.dir, "planner", run.options.save_freq, PLANNER_FILE)
     ]

@@ -118,6 +118,8 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
             raise ValueError(f"--{name}: no such file: {path}")
     if request.gradient_steps < 1 or request.eval_every < 1 or request.episodes < 1:
         raise ValueError("--gradient-steps, --eval-every and --episodes must be positive")
+    if request.heldout_episodes < 0:
+        raise ValueError(f"--heldout-episodes must be 0 or more, got {request.heldout_episodes}")
     if request.subgoals not in ("random", "farthest") and not Path(request.subgoals).is_file():
         raise ValueError(
             f"--subgoals must be 'random', 'farthest' or a decider .zip; no file {request.subgoals}"
@@ -127,9 +129,12 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
         raise ValueError("--predictor-set goal_condition: the stage trains both (learned and no_goal)")
     PredictorConfig.from_dict(request.predictor_kwargs)
     rng = np.random.default_rng(request.seed)
-    collector = None  # the models are loaded before the run folder is made: one that does not fit fails here
+    # The models and the buffer are loaded before the run folder is made: one that does not fit fails here.
+    collector, given = None, None
     if request.buffer is None:
         collector = frozen_planner(request.planner, world), subgoal_chooser(request.subgoals, rng, world)
+    else:
+        given = _split(EpisodeReplayBuffer.load(request.buffer), request.heldout_share)
     run_dir = (
         request.log_folder / "predictor" / f"{DECIDER_ENV_ID}_{request.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     )
@@ -139,7 +144,7 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
     (run_dir / ARGS_FILE).write_text(yaml.safe_dump(args, sort_keys=False))
 
     th.manual_seed(request.seed)
-    train, heldout = _data(request, world, rng, collector)
+    train, heldout = given or _collect(request, world, rng, collector)
     train.save(run_dir / "buffer.npz")
     heldout.save(run_dir / "heldout.npz")
     print(f"decisions: {len(train)} for training, {len(heldout)} held out")
@@ -175,22 +180,26 @@ def train_predictor_stage(request: PredictorRequest) -> Path:
     return run_dir
 
 
-def _data(
+def _split(
+    loaded: EpisodeReplayBuffer, heldout_share: float
+) -> tuple[EpisodeReplayBuffer, EpisodeReplayBuffer]:
+    """A loaded buffer's decisions for training and held out, the last ``heldout_share`` held out."""
+    arrays = loaded.stored()
+    split = round(len(loaded) * (1 - heldout_share))
+    if not 0 < split < len(loaded):
+        raise ValueError(f"--buffer holds {len(loaded)} decisions: too few to hold some out")
+    return _buffer_of(arrays, slice(0, split)), _buffer_of(arrays, slice(split, None))
+
+
+def _collect(
     request: PredictorRequest,
     world: IntersectionConfig,
     rng: np.random.Generator,
     collector: tuple[FrozenPolicy | None, Chooser] | None,
 ) -> tuple[EpisodeReplayBuffer, EpisodeReplayBuffer]:
-    """Training and held-out decisions: loaded and split, or collected on disjoint traffic seeds by
-    ``collector`` (the planner and the subgoal policy)."""
-    if collector is None:
-        assert request.buffer is not None
-        loaded = EpisodeReplayBuffer.load(request.buffer)
-        arrays = loaded.stored()
-        split = round(len(loaded) * (1 - request.heldout_share))
-        if not 0 < split < len(loaded):
-            raise ValueError(f"--buffer holds {len(loaded)} decisions: too few to hold some out")
-        return _buffer_of(arrays, slice(0, split)), _buffer_of(arrays, slice(split, None))
+    """Training and held-out decisions collected on disjoint traffic seeds by ``collector`` (the planner
+    and the subgoal policy)."""
+    assert collector is not None
     planner, choose = collector
     env = GCCPDeciderEnv(config=world, planner=planner)
     per_episode = int(np.ceil(world.duration / (world.decision_period * DT))) + 1

@@ -19,11 +19,13 @@ again.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shlex
+import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -289,6 +291,19 @@ def make_run_env(
         for name, t_start in monitor_start_times(run_dir).items():
             env.set_attr("t_start", t_start, indices=[int(name.split(".")[0])])
     return env
+
+
+@contextlib.contextmanager
+def removed_if_setup_fails(run: Run) -> Iterator[None]:
+    """Take a new run's folder away again when setting the run up fails (settings that only the envs or
+    the model reject), so that no half-made run is left for ``latest_run`` or ``--resume``; a resumed
+    run's folder stays as it is."""
+    try:
+        yield
+    except BaseException:
+        if not run.resumed:
+            shutil.rmtree(run.dir, ignore_errors=True)
+        raise
 
 
 def prepare_run_folder(
