@@ -4,6 +4,7 @@ code pickled in a model file runs unless the user trusts it."""
 from __future__ import annotations
 
 import base64
+import multiprocessing
 import shutil
 from pathlib import Path
 from typing import Any
@@ -291,6 +292,23 @@ def test_settings_only_the_model_rejects_leave_no_run_folder(capsys, tmp_path, c
     argv = ["train", "--stage", "planner", "--config", str(config), "--log-folder", str(tmp_path / "runs")]
     assert message in one_line_error(capsys, [*argv, "--no-progress"])
     assert not list((tmp_path / "runs").rglob("*.yml"))  # no run folder that --resume would take
+
+
+def test_a_decider_whose_model_cannot_be_built_leaves_no_worker_process(capsys, tmp_path):
+    decider = {
+        "n_timesteps": 8,
+        "n_envs": 2,  # one worker process each
+        "policy": "NoSuchPolicy",
+        "env_kwargs": TINY_WORLD,
+        "gccp": {"n_episodes": 1, "predictor": "none"},
+    }
+    config = tmp_path / "decider.yml"
+    config.write_text(yaml.safe_dump({"GCCPDecider-v0": decider}))
+    argv = ["train", "--stage", "decider", "--planner", "scripted", "--config", str(config)]
+    line = one_line_error(capsys, [*argv, "--log-folder", str(tmp_path / "runs"), "--no-progress"])
+    assert "unknown class name 'NoSuchPolicy'" in line
+    assert multiprocessing.active_children() == []
+    assert not list((tmp_path / "runs").rglob("*.yml"))
 
 
 @pytest.mark.parametrize("arrays", [{"future": np.zeros(3)}, None])

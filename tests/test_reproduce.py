@@ -159,6 +159,8 @@ def test_stripped_model_keeps_its_weights_and_optimizer_settings(reproduced, tmp
         (["--set", "world.spawn_probabilty=0.1"], "unknown intersection config key(s)"),
         (["--set", "hyperparams.dqn.buffer_sise=5"], "unknown hyperparameter(s): 'buffer_sise'"),
         (["--set", "hyperparams.td3.tau=1"], "preset hyperparams: unknown group(s) 'td3'"),
+        (["--set", "hyperparams.ppo.batch_size=0"], "batch_size must be an integer of at least 2, got 0"),
+        (["--set", "hyperparams.hierarchy.n_epochs=0"], "n_epochs must be an integer of at least 1, got 0"),
         (["--jobs", "0"], "--jobs must be at least 1, got 0"),
         (["--launcher-set", "timeout_min=5"], "--launcher-set is for --launcher submitit"),
         (["--collect", "out"], "no runs to collect: runs/reproduce/quick/preset.yml not found"),
@@ -174,13 +176,25 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_is_written(
     assert not list(tmp_path.iterdir())
 
 
-def test_a_changed_training_budget_does_not_reuse_finished_runs(tmp_path, monkeypatch, capsys):
+@pytest.fixture
+def quick_folder(tmp_path, monkeypatch):
+    """A reproduction folder of the quick preset with no run in it, in the current directory."""
     monkeypatch.chdir(tmp_path)
     root = tmp_path / "runs" / "reproduce" / "quick"
     root.mkdir(parents=True)
     (root / "preset.yml").write_text(yaml.safe_dump(PRESETS["quick"].to_dict()))
+    return tmp_path
+
+
+def test_a_changed_training_budget_does_not_reuse_finished_runs(quick_folder, capsys):
     assert main(["reproduce", "--preset", "quick", "--methods", "ours", "--set", "episodes=7"]) == 2
     assert "(episodes differ): give the same settings or another --log-folder" in capsys.readouterr().err
+
+
+def test_collecting_unfinished_runs_writes_nothing(quick_folder, capsys):
+    assert main(["reproduce", "--preset", "quick", "--methods", "ppo", "--collect", "out"]) == 2
+    assert "unfinished in runs/reproduce/quick: seed0/ppo" in capsys.readouterr().err
+    assert not (quick_folder / "out").exists()
 
 
 def test_paper_preset_configs_change_only_the_budget_and_the_gccp_variant():

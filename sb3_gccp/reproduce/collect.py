@@ -98,6 +98,7 @@ def collect(plan: Plan, started: float | None = None) -> dict[str, Any]:
         },
     }
     request.out.mkdir(parents=True, exist_ok=True)
+    plan.write_configs()
     write_outputs(plan, runs, errors)
     results["wall_clock_s"] = round(time.perf_counter() - started, 1)
     (request.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")

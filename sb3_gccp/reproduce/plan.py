@@ -12,11 +12,18 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.constants import DECIDER_ENV_ID, FLAT_ENV_ID, PLANNER_ENV_ID, SCRIPTED
 from sb3_gccp.frozen import load_planner
-from sb3_gccp.hyperparams import check_keys, default_config_file, load_hyperparams, resolve_policy_kwargs
+from sb3_gccp.hyperparams import (
+    check_keys,
+    default_config_file,
+    gradient_steps_per_timestep,
+    load_hyperparams,
+    resolve_policy_kwargs,
+)
 from sb3_gccp.networks import EncoderConfig
 from sb3_gccp.reproduce.methods import METHODS, Method
 from sb3_gccp.training.baselines import MASKS_KEY, baseline_algorithm, max_episode_steps, uses_masks
@@ -253,15 +260,15 @@ def check_settings(method: Method | None, settings: dict[str, Any]) -> None:
     if method is None or method.is_hierarchy:
         own = ("gccp",) if method is not None else (IMITATION_KEY,)
         run_budget(settings, own_keys=own)
+        gradient_steps_per_timestep(MaskablePPO, settings)
         if method is not None:
             gccp_settings(settings)
         else:
             imitation_settings(settings)
         return
-    check_keys(
-        {k: v for k, v in settings.items() if k != MASKS_KEY},
-        baseline_algorithm(method.algorithm, uses_masks(settings)),
-    )
+    algorithm = baseline_algorithm(method.algorithm, uses_masks(settings))
+    check_keys({k: v for k, v in settings.items() if k != MASKS_KEY}, algorithm)
+    gradient_steps_per_timestep(algorithm, settings)
     IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     resolve_policy_kwargs(settings.get("policy_kwargs") or {})
 
@@ -323,6 +330,15 @@ class Plan:
     """``<log_folder>/reproduce/<preset>``."""
     configs: dict[str, Path]
     """Zoo file of every method (and of the planner, under 'planner')."""
+    entries: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
+    """What :meth:`write_configs` writes into ``configs`` (left out of :meth:`to_dict`: a job reads the
+    files)."""
+
+    def write_configs(self) -> None:
+        """Write every zoo file of ``configs`` (the folder made if need be)."""
+        for name, content in self.entries.items():
+            self.configs[name].parent.mkdir(parents=True, exist_ok=True)
+            self.configs[name].write_text(yaml.safe_dump(content, sort_keys=False))
 
     @property
     def trains_planner(self) -> bool:
@@ -361,7 +377,8 @@ def prepare(request: ReproduceRequest, collect: bool = False) -> Plan:
     reproduction's folder.
 
     :param collect: only read finished runs: the preset is the one the reproduction's folder holds
-        (``--set`` applied over it), and that folder must exist
+        (``--set`` applied over it), and that folder must exist; nothing is written (the zoo files are
+        written by :func:`~sb3_gccp.reproduce.collect.collect` once every run is found finished)
     :raises ValueError: bad input, with a one-line reason; nothing is written then
     """
     if request.preset not in PRESETS:
@@ -407,14 +424,13 @@ def prepare(request: ReproduceRequest, collect: bool = False) -> Plan:
     if request.out.exists() and not request.out.is_dir():
         raise ValueError(f"--out {request.out}: a file, not a folder")
 
+    configs = {name: request.out / "configs" / f"{name}.yml" for name in files}
+    plan = Plan(request, preset, methods, root, configs, files)
     if not collect:
         root.mkdir(parents=True, exist_ok=True)
         (root / PRESET_FILE).write_text(yaml.safe_dump(preset.to_dict(), sort_keys=True))
-    (request.out / "configs").mkdir(parents=True, exist_ok=True)
-    configs = {name: request.out / "configs" / f"{name}.yml" for name in files}
-    for name, content in files.items():
-        configs[name].write_text(yaml.safe_dump(content, sort_keys=False))
-    return Plan(request, preset, methods, root, configs)
+        plan.write_configs()
+    return plan
 
 
 def _with_hint(name: str, known: list[str]) -> str:

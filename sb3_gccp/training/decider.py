@@ -145,14 +145,15 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
             append=model is not None,
             subprocesses=True,
         )
-        if model is None:
-            kwargs = algorithm_kwargs(
-                {k: v for k, v in run.settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
-            )
-            model = new_model(env, run, kwargs)
-        else:
-            continue_model(model, env, run)
-    try:
+    try:  # the env's workers are closed whatever fails from here on
+        with removed_if_setup_fails(run):
+            if model is None:
+                kwargs = algorithm_kwargs(
+                    {k: v for k, v in run.settings.items() if k != "gccp"}, n_timesteps, "DecisionMakerPolicy"
+                )
+                model = new_model(env, run, kwargs)
+            else:
+                continue_model(model, env, run)
         if gccp_callback.episodes < gccp.n_episodes and model.num_timesteps < n_timesteps:
             model.learn(
                 n_timesteps - model.num_timesteps,

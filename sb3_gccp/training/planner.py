@@ -59,27 +59,28 @@ def train_planner(request: StageRequest) -> Path:
         env = make_run_env(
             PLANNER_ENV_ID, n_envs, run.seed, {"config": world}, run.dir, append=model is not None
         )
-        if model is None:
-            ppo_settings = {k: v for k, v in run.settings.items() if k != IMITATION_KEY}
-            model = new_model(env, run, algorithm_kwargs(ppo_settings, n_timesteps))
-        else:
-            continue_model(model, env, run)
-    callbacks: list[BaseCallback] = [
-        ModelCheckpointCallback(run.dir, "planner", run.options.save_freq, PLANNER_FILE)
-    ]
-    if imitation is not None:
-        data = imitation_data(
-            model, run.dir, world, imitation, run.seed, checkpoint is not None, run.options.progress_bar
-        )
-        if imitation.bc_steps > 0:
-            callbacks.append(BehaviourCloningCallback(data, imitation, run.seed))
-    if run.options.progress_bar:
-        callbacks.append(StepBar(n_timesteps))
-    if request.max_episodes is not None:
-        # SB3 counts the limit per worker.
-        callbacks.append(StopTrainingOnMaxEpisodes(math.ceil(request.max_episodes / n_envs)))
-    remaining = n_timesteps - model.num_timesteps
-    try:
+    try:  # the env's workers are closed whatever fails from here on
+        with removed_if_setup_fails(run):
+            if model is None:
+                ppo_settings = {k: v for k, v in run.settings.items() if k != IMITATION_KEY}
+                model = new_model(env, run, algorithm_kwargs(ppo_settings, n_timesteps))
+            else:
+                continue_model(model, env, run)
+        callbacks: list[BaseCallback] = [
+            ModelCheckpointCallback(run.dir, "planner", run.options.save_freq, PLANNER_FILE)
+        ]
+        if imitation is not None:
+            data = imitation_data(
+                model, run.dir, world, imitation, run.seed, checkpoint is not None, run.options.progress_bar
+            )
+            if imitation.bc_steps > 0:
+                callbacks.append(BehaviourCloningCallback(data, imitation, run.seed))
+        if run.options.progress_bar:
+            callbacks.append(StepBar(n_timesteps))
+        if request.max_episodes is not None:
+            # SB3 counts the limit per worker.
+            callbacks.append(StopTrainingOnMaxEpisodes(math.ceil(request.max_episodes / n_envs)))
+        remaining = n_timesteps - model.num_timesteps
         if remaining > 0:
             model.learn(
                 remaining,
