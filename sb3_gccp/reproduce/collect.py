@@ -7,10 +7,13 @@ runs made by other processes or on other machines, and trains nothing.
 from __future__ import annotations
 
 import json
+import shutil
 import time
+from pathlib import Path
 from typing import Any
 
 from gccp_envs.config import TASKS
+from sb3_gccp.constants import EPISODES_FILE, EVALUATION_FILE, TRAINING_FILE
 from sb3_gccp.reproduce.methods import METHODS, PAPER_RESULTS
 from sb3_gccp.reproduce.plan import Plan, mask_after_episodes
 from sb3_gccp.reproduce.report import aggregate, write_outputs
@@ -21,6 +24,12 @@ from sb3_gccp.reproduce.runner import (
     finished_training,
     planner_budget,
 )
+
+RECORDS_DIR = "runs"
+"""In ``<out>``: every run's records (:data:`RECORD_FILES`) and each seed's Fig. 7 numbers, laid out as the
+reproduction's folder (``seed<k>/<method>/``), so that the outputs hold every episode behind the tables."""
+RECORD_FILES = (TRAINING_FILE, EVALUATION_FILE, EPISODES_FILE)
+"""A run's records: the training record, every evaluation episode, every training episode."""
 
 
 class UnfinishedRuns(ValueError):
@@ -99,7 +108,21 @@ def collect(plan: Plan, started: float | None = None) -> dict[str, Any]:
     }
     request.out.mkdir(parents=True, exist_ok=True)
     plan.write_configs()
+    copy_records(plan, request.out / RECORDS_DIR)
     write_outputs(plan, runs, errors)
     results["wall_clock_s"] = round(time.perf_counter() - started, 1)
     (request.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def copy_records(plan: Plan, folder: Path) -> None:
+    """Copy the records of the plan's runs (and each seed's Fig. 7 numbers) into ``folder``."""
+    for seed in plan.request.seeds:
+        for method in plan.methods:
+            target = folder / f"seed{seed}" / method.name
+            target.mkdir(parents=True, exist_ok=True)
+            for name in RECORD_FILES:
+                shutil.copyfile(plan.run_dir(seed, method.name) / name, target / name)
+        if any(m.name == "ours" for m in plan.methods):  # Fig. 7's numbers are made with ours
+            errors = f"seed{seed}/{PREDICTOR_ERRORS_FILE}"
+            shutil.copyfile(plan.root / errors, folder / errors)
