@@ -64,9 +64,9 @@ def test_quick_preset_trains_evaluates_and_writes_tables_data_and_figures(reprod
     # Every run's records, copied beside the tables.
     for name in METHODS:
         for record in ("training.json", "evaluation.json", "episodes.csv"):
-            copy = out / "runs" / "seed0" / name / record
+            copy = out / "records" / "seed0" / name / record
             assert copy.read_bytes() == (root / "seed0" / name / record).read_bytes(), (name, record)
-    assert (out / "runs" / "seed0" / "predictor_errors.json").is_file()
+    assert (out / "records" / "seed0" / "predictor_errors.json").is_file()
 
     # The same budget for every method, the same traffic flows for every method's evaluation.
     flows = set()

@@ -21,8 +21,8 @@ Folders::
         submitit/                       submitit's pickles and job logs, with --launcher submitit
     <out>/
         configs/<method>.yml            the zoo file each method trained from (and configs/planner.yml)
-        runs/seed<k>/<method>/          each run's training.json, evaluation.json and episodes.csv, and
-                                        runs/seed<k>/predictor_errors.json
+        records/seed<k>/<method>/       each run's training.json, evaluation.json and episodes.csv, and
+                                        records/seed<k>/predictor_errors.json
         table1.md, table2.md            the paper's tables: success / collision per task, timeouts
         results.csv, results.json       one row per method x seed x task; everything behind the tables
         fig5_baselines.png              success rate vs episode, ours vs the baselines

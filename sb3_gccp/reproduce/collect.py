@@ -25,7 +25,7 @@ from sb3_gccp.reproduce.runner import (
     planner_budget,
 )
 
-RECORDS_DIR = "runs"
+RECORDS_DIR = "records"
 """In ``<out>``: every run's records (:data:`RECORD_FILES`) and each seed's Fig. 7 numbers, laid out as the
 reproduction's folder (``seed<k>/<method>/``), so that the outputs hold every episode behind the tables."""
 RECORD_FILES = (TRAINING_FILE, EVALUATION_FILE, EPISODES_FILE)
