@@ -305,9 +305,10 @@ def test_a_decider_whose_model_cannot_be_built_leaves_no_worker_process(capsys, 
     config = tmp_path / "decider.yml"
     config.write_text(yaml.safe_dump({"GCCPDecider-v0": decider}))
     argv = ["train", "--stage", "decider", "--planner", "scripted", "--config", str(config)]
+    before = set(multiprocessing.active_children())
     line = one_line_error(capsys, [*argv, "--log-folder", str(tmp_path / "runs"), "--no-progress"])
     assert "unknown class name 'NoSuchPolicy'" in line
-    assert multiprocessing.active_children() == []
+    assert set(multiprocessing.active_children()) <= before
     assert not list((tmp_path / "runs").rglob("*.yml"))
 
 
