@@ -189,14 +189,15 @@ def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
 
 
 def sumo_children() -> list[int]:
-    """Ids of this process's child processes running a SUMO binary."""
+    """Ids of this process's child processes running a SUMO binary (by the program's name: the
+    command line of another child, such as multiprocessing's forkserver, may name SUMO's folders)."""
     children = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             fields = stat.read_text().rsplit(")", 1)[1].split()
-            command = (stat.parent / "cmdline").read_bytes()
+            program = (stat.parent / "cmdline").read_bytes().split(b"\0")[0]
         except OSError:
             continue
-        if int(fields[1]) == os.getpid() and b"sumo" in command:
+        if int(fields[1]) == os.getpid() and b"sumo" in Path(os.fsdecode(program)).name.encode():
             children.append(int(stat.parent.name))
     return children
