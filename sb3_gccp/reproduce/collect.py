@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -108,21 +109,22 @@ def collect(plan: Plan, started: float | None = None) -> dict[str, Any]:
     }
     request.out.mkdir(parents=True, exist_ok=True)
     plan.write_configs()
-    copy_records(plan, request.out / RECORDS_DIR)
+    copy_records(plan, request.out / RECORDS_DIR, errors)
     write_outputs(plan, runs, errors)
     results["wall_clock_s"] = round(time.perf_counter() - started, 1)
     (request.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     return results
 
 
-def copy_records(plan: Plan, folder: Path) -> None:
-    """Copy the records of the plan's runs (and each seed's Fig. 7 numbers) into ``folder``."""
+def copy_records(plan: Plan, folder: Path, errors: Mapping[int, Any]) -> None:
+    """Copy the records of the plan's runs, and the Fig. 7 numbers of the seeds in ``errors``, into
+    ``folder``."""
     for seed in plan.request.seeds:
         for method in plan.methods:
             target = folder / f"seed{seed}" / method.name
             target.mkdir(parents=True, exist_ok=True)
             for name in RECORD_FILES:
                 shutil.copyfile(plan.run_dir(seed, method.name) / name, target / name)
-        if any(m.name == "ours" for m in plan.methods):  # Fig. 7's numbers are made with ours
-            errors = f"seed{seed}/{PREDICTOR_ERRORS_FILE}"
-            shutil.copyfile(plan.root / errors, folder / errors)
+    for seed in errors:
+        name = f"seed{seed}/{PREDICTOR_ERRORS_FILE}"
+        shutil.copyfile(plan.root / name, folder / name)

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig, reject_unknown_keys, require_int
 from sb3_gccp.constants import DECIDER_ENV_ID, FLAT_ENV_ID, PLANNER_ENV_ID, SCRIPTED
@@ -260,7 +259,6 @@ def check_settings(method: Method | None, settings: dict[str, Any]) -> None:
     if method is None or method.is_hierarchy:
         own = ("gccp",) if method is not None else (IMITATION_KEY,)
         run_budget(settings, own_keys=own)
-        gradient_steps_per_timestep(MaskablePPO, settings)
         if method is not None:
             gccp_settings(settings)
         else:

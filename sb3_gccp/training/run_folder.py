@@ -204,9 +204,10 @@ def resume_checkpoint(run: Run) -> Checkpoint | None:
 def run_budget(
     settings: dict[str, Any], own_keys: tuple[str, ...] = (), allow_zero: bool = False
 ) -> tuple[IntersectionConfig, int, int]:
-    """Check the settings' keys (besides ``own_keys``) against MaskablePPO; the world config,
-    ``n_timesteps`` (0 allowed with ``allow_zero``) and ``n_envs``."""
+    """Check the settings' keys (besides ``own_keys``) and batch arithmetic against MaskablePPO; the world
+    config, ``n_timesteps`` (0 allowed with ``allow_zero``) and ``n_envs``."""
     check_keys({k: v for k, v in settings.items() if k not in own_keys}, MaskablePPO)
+    gradient_steps_per_timestep(MaskablePPO, settings)
     world = IntersectionConfig.from_dict(settings.get("env_kwargs") or {})
     n_timesteps = int(settings.get("n_timesteps", 100_000))
     n_envs = int(settings.get("n_envs", 1))
