@@ -5,6 +5,8 @@ with a ``hierarchy.yml`` naming the copies; a baseline run (``baseline.yml``) it
 SB3 ``.zip`` files lose their optimisers' moment estimates on the way (Adam's ``exp_avg`` and
 ``exp_avg_sq`` are two thirds of a decider ``.zip``): they load and predict exactly as before, and
 training resumed from an exported model restarts those estimates (a run's ``checkpoints/`` keep them).
+They also lose the training machine's TensorBoard folder, where SB3's ``learn()`` on a loaded model would
+otherwise write (or fail, without tensorboard).
 The run's records come along when present: command, config, episodes, evaluation, training curve.
 World config keys and GCCP check settings can be replaced on the way (``--set``, ``--mask``), so that the
 exported hierarchy runs, for example, another GCCP check than it was trained with; ``hierarchy.yml`` then
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import json
 import shutil
 import uuid
 import zipfile
@@ -64,8 +67,9 @@ RECORDS = (
 """Files of a run folder copied along when present."""
 
 
-def strip_optimizer_state(source: str | Path, target: str | Path) -> None:
-    """Copy an SB3 ``.zip`` without the per-parameter state of its optimisers (their settings stay).
+def portable_copy(source: str | Path, target: str | Path) -> None:
+    """Copy an SB3 ``.zip`` for use on another machine: without the per-parameter state of its optimisers
+    (their settings stay) and without its TensorBoard folder.
 
     :param source: the saved model
     :param target: where the smaller copy goes
@@ -80,11 +84,24 @@ def strip_optimizer_state(source: str | Path, target: str | Path) -> None:
                     buffer = io.BytesIO()
                     th.save({"state": {}, "param_groups": state["param_groups"]}, buffer)
                     data = buffer.getvalue()
+                elif item.filename == "data":
+                    data = _without_tensorboard_log(data)
                 zout.writestr(item, data)
     except OSError:
         raise
     except Exception as err:  # a damaged file: zipfile, zlib, torch and its unpickler raise many kinds
         raise ValueError(f"{source} is damaged: {first_line(err)}") from err
+
+
+def _without_tensorboard_log(data: bytes) -> bytes:
+    """SB3's ``data`` entry with ``tensorboard_log`` set to null, every other byte as it was."""
+    folder = json.loads(data).get("tensorboard_log")
+    if folder is None:
+        return data
+    pair = f'"tensorboard_log": {json.dumps(folder)}'.encode()
+    if data.count(pair) != 1:
+        raise ValueError("its data entry names its TensorBoard folder in an unexpected form")
+    return data.replace(pair, b'"tensorboard_log": null')
 
 
 def export_run(
@@ -135,7 +152,7 @@ def _write(target: Path, name: str, source: Path | str) -> None:
     if isinstance(source, str):
         target.write_text(source)
     elif name.endswith(".zip"):
-        strip_optimizer_state(source, target)
+        portable_copy(source, target)
     else:
         shutil.copyfile(source, target)
 

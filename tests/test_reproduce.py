@@ -137,20 +137,23 @@ def test_export_gives_small_folders_that_evaluate_like_their_runs(reproduced, tm
     assert stochastic.returncode == 2 and "--stochastic" in stochastic.stderr
 
 
-def test_stripped_model_keeps_its_weights_and_optimizer_settings(reproduced, tmp_path):
+def test_exported_model_keeps_weights_and_optimizer_settings_not_its_tensorboard_folder(reproduced, tmp_path):
     from sb3_contrib import MaskablePPO
 
-    from sb3_gccp.export import strip_optimizer_state
+    from sb3_gccp.export import portable_copy
 
     folder, _ = reproduced
     source = folder / "runs" / "reproduce" / "quick" / "seed0" / "planner" / "planner.zip"  # 2 updates
-    strip_optimizer_state(source, tmp_path / "planner.zip")
+    portable_copy(source, tmp_path / "planner.zip")
     full, stripped = MaskablePPO.load(source), MaskablePPO.load(tmp_path / "planner.zip")
     for key, value in full.policy.state_dict().items():
         assert th.equal(value, stripped.policy.state_dict()[key]), key
     assert full.policy.optimizer.state_dict()["state"] and not stripped.policy.optimizer.state_dict()["state"]
     groups = stripped.policy.optimizer.state_dict()["param_groups"]
     assert groups == full.policy.optimizer.state_dict()["param_groups"]
+    assert full.tensorboard_log and stripped.tensorboard_log is None
+    kept = ("n_steps", "gamma", "num_timesteps")
+    assert [getattr(stripped, name) for name in kept] == [getattr(full, name) for name in kept]
 
 
 @pytest.mark.parametrize(
