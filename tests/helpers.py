@@ -198,6 +198,6 @@ def sumo_children() -> list[int]:
             program = (stat.parent / "cmdline").read_bytes().split(b"\0")[0]
         except OSError:
             continue
-        if int(fields[1]) == os.getpid() and b"sumo" in Path(os.fsdecode(program)).name.encode():
+        if int(fields[1]) == os.getpid() and b"sumo" in os.path.basename(program):
             children.append(int(stat.parent.name))
     return children
