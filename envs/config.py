@@ -289,6 +289,12 @@ class IntersectionConfig:
     env's fallback. A planner held on a candidate it has already passed brakes for a few steps and then
     steers towards it, and a turn holds the speed, so the ego rolled on into the conflict the check had
     just seen (ours; docs/experiments/2026-11-28-brake-when-nothing-passes.md)."""
+    fallback_go_on: bool = False
+    """Option env: when the mask function allows no candidate while the ego drives (at least 1 m/s) inside
+    the junction, allow the candidates whose first predicted collision comes latest (the mask function's
+    ``latest_collision``, where it has one) instead of the nearest: held inside the junction, the ego
+    brakes to a stand on the crossing paths it was about to clear, where it is hit or stands nose to nose
+    with a car waiting for it (ours; docs/experiments/2026-11-29-going-on-inside-the-junction.md)."""
     observe_mask: bool = False
     """Option env: the decision-maker observes the mask function's verdict on each candidate (1: allowed,
     0: ruled out, before the env's fallback), under the key ``subgoal_allowed``, and its features take it
@@ -445,6 +451,7 @@ def _validate(config: IntersectionConfig) -> None:
     for name in (
         "scripted_stop_aligned",
         "fallback_brakes",
+        "fallback_go_on",
         "observe_mask",
         "r_subgoal_needs_travel",
         "smarts_grid_map",

@@ -34,7 +34,11 @@ from gccp_envs.world import StepOutcome
 Planner = Callable[[Obs, np.ndarray], int]
 """A motion-planner: (planner observation, action mask) -> ego action."""
 MaskFunction = Callable[[Obs], np.ndarray]
-"""A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed."""
+"""A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed. One may also have
+a method ``latest_collision(obs)`` -> bool (N,): the candidates whose predicted collision comes latest, for
+the world key ``fallback_go_on``."""
+GO_ON_SPEED = 1.0
+"""Speed [m/s] from which the ego counts as driving, for ``fallback_go_on``."""
 VERDICT_KEY = "subgoal_allowed"
 """Observation key of the mask function's verdict per candidate, with the world key ``observe_mask``."""
 PlannerStepCallback = Callable[["GCCPDeciderEnv"], None]
@@ -124,8 +128,9 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
 
     def action_masks(self) -> np.ndarray:
         """Allowed subgoals. If the mask function allows none, only the nearest candidate is allowed:
-        holding back is the least risky choice when every subgoal is predicted to collide. With
-        ``observe_mask`` the verdict is the one the observation shows."""
+        holding back is the least risky choice when every subgoal is predicted to collide; with
+        ``fallback_go_on``, while the ego drives inside the junction, the candidates whose collision is
+        predicted latest. With ``observe_mask`` the verdict is the one the observation shows."""
         n = self.config.num_subgoals
         if self._last_obs is None:
             self._masked = np.zeros(n, bool)
@@ -133,8 +138,17 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         mask = self._verdict if self.config.observe_mask else self._check(self._last_obs)
         self._masked = ~mask
         if not mask.any():
-            mask = np.zeros(n, bool)
-            mask[int(np.argmin(np.hypot(*self._last_obs["subgoals"][:, :2].T)))] = True
+            mask = self._fallback(self._last_obs)
+        return mask
+
+    def _fallback(self, obs: Obs) -> np.ndarray:
+        """The candidates allowed when the mask function allows none (see :meth:`action_masks`)."""
+        latest = getattr(self.mask_fn, "latest_collision", None)
+        driving = self.world.ego.speed >= GO_ON_SPEED
+        if self.config.fallback_go_on and latest is not None and driving and self.world.ego_in_junction():
+            return np.asarray(latest(obs), bool).reshape(self.config.num_subgoals)
+        mask = np.zeros(self.config.num_subgoals, bool)
+        mask[int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))] = True
         return mask
 
     def step(self, action: np.int64 | int) -> tuple[Obs, float, bool, bool, dict[str, Any]]:

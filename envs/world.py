@@ -240,6 +240,11 @@ class IntersectionWorld:
         """The ego as the traffic sees it."""
         return Obstacle(self.ego.x, self.ego.y, self.ego.heading, self.ego.speed, path=self._task_paths[0])
 
+    def ego_in_junction(self) -> bool:
+        """Whether the ego's centre is inside the junction box, past its stop line and not yet past the
+        exit's."""
+        return max(abs(self.ego.x), abs(self.ego.y)) < self.layout.junction
+
     def ego_on_road(self, ego: EgoState) -> bool:
         """Whether all four corners of the ego's box are on the drivable area."""
         return bool(self._on_road(np.array([[ego.x, ego.y, ego.heading]]))[0])

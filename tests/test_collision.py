@@ -87,6 +87,20 @@ def test_head_on_candidate_is_masked_and_a_clear_road_is_not():
     assert not checker.collides(ego, neighbours, present).any()
 
 
+def test_first_collision_is_the_step_the_boxes_first_overlap():
+    checker = CollisionChecker()
+    # Candidate 0 drives north into a car coming south at 8 m/s from 14 m: the centres close at 16 m/s,
+    # and 5 m cars overlap once they are less than 5 m apart, at step 6 (index 5). Candidate 1 stands,
+    # and the car is still 6 m from it at the last step. Boxes 2 m longer overlap below 7 m: steps 5 and 9.
+    ego = np.stack([straight(0.0, 0.0, -np.pi / 2, 8.0), straight(0.0, 0.0, -np.pi / 2, 0.0)])
+    neighbours = np.stack([straight(0.0, -14.0, np.pi / 2, 8.0)[None]] * 2)
+    present = np.array([True])
+    assert checker.first_collision(ego, neighbours, present).tolist() == [5, 10]
+    np.testing.assert_array_equal(checker.collides(ego, neighbours, present), [True, False])
+    assert checker.with_margin(2.0).first_collision(ego, neighbours, present).tolist() == [4, 8]
+    assert checker.first_collision(ego, neighbours, np.array([False])).tolist() == [10, 10]
+
+
 def test_margin_and_sizes_widen_the_boxes():
     ego = straight(0.0, 0.0, 0.0, 0.0, steps=1)[None]
     beside = straight(0.0, 2.2, 0.0, 0.0, steps=1)[None, None]  # 0.2 m gap between 2 m wide cars

@@ -168,6 +168,19 @@ def test_a_fallback_margin_checks_again_only_when_no_candidate_passes():
     np.testing.assert_array_equal(fallback(ahead), plain)
 
 
+def test_latest_collision_names_the_candidates_that_meet_the_car_last():
+    # A car stands 9 m ahead and the ego goes on 2 s beyond each prediction at its last step's speed:
+    # every candidate reaches the car, the nearest (2 m ahead, 0.2 m per step) last.
+    obs = scene([(0.0, 0.0, 0.0, 8.0), (9.0, 0.0, np.pi, 0.0)])
+    mask = GCCPMask(TowardsGoal(), GCCPCheck(extrapolate_steps=20))
+    assert not mask(obs).any()
+    np.testing.assert_array_equal(mask.latest_collision(obs), np.arange(G) == 0)
+    # Asked about another observation than the last one checked, it checks that one.
+    clear = scene([(0.0, 0.0, 0.0, 8.0), (-30.0, 0.0, 0.0, 0.0)])
+    assert GCCPMask(TowardsGoal(), GCCPCheck(extrapolate_steps=20)).latest_collision(clear).all()
+    assert mask.latest_collision(clear).all() and mask.latest_collision(obs)[0]
+
+
 def test_mask_allows_everything_without_neighbours():
     class Failing(nn.Module):
         def forward(self, obs, goals):

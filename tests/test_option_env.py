@@ -220,6 +220,41 @@ def test_fallback_brakes_leave_the_planner_alone_when_a_candidate_passes():
     assert len(planner.poses) == 10 and env.world.ego.speed >= start
 
 
+class NothingPasses:
+    """A mask function that allows no candidate and predicts the latest collision under candidate 7."""
+
+    def __call__(self, obs):
+        return np.zeros(12, bool)
+
+    def latest_collision(self, obs):
+        return np.arange(12) == 7
+
+
+@pytest.mark.parametrize("go_on", [False, True])
+@pytest.mark.parametrize(
+    "y, speed, inside",
+    [(20.0, 6.0, False), (5.0, 6.0, True), (5.0, 0.5, True)],
+    ids=["before", "driving", "standing"],
+)
+def test_fallback_goes_on_only_while_the_ego_drives_inside_the_junction(go_on, y, speed, inside):
+    env, _ = make(seed=0, spawn_probability=0.0, fallback_go_on=go_on, mask_fn=NothingPasses())
+    place_ego(env.world, 6.0, y, -np.pi / 2, speed)  # on the straight path from the south arm
+    env._last_obs = env._observe()
+    assert env.world.ego_in_junction() == inside
+    nearest = int(np.argmin(np.hypot(*env._last_obs["subgoals"][:, :2].T)))
+    expected = 7 if go_on and inside and speed >= 1.0 else nearest
+    assert np.flatnonzero(env.action_masks()).tolist() == [expected]
+    np.testing.assert_array_equal(env._masked, np.ones(12, bool))  # drawn as all masked either way
+
+
+def test_fallback_go_on_holds_with_a_mask_function_that_cannot_rank():
+    env, _ = make(seed=0, spawn_probability=0.0, fallback_go_on=True, mask_fn=lambda o: np.zeros(12, bool))
+    place_ego(env.world, 6.0, 5.0, -np.pi / 2, 6.0)
+    env._last_obs = env._observe()
+    nearest = int(np.argmin(np.hypot(*env._last_obs["subgoals"][:, :2].T)))
+    assert np.flatnonzero(env.action_masks()).tolist() == [nearest]
+
+
 def test_observe_mask_shows_the_verdict_the_action_mask_uses():
     verdict = np.arange(12) % 3 == 0
     env, obs = make(seed=0, observe_mask=True, mask_fn=lambda o: verdict)

@@ -59,7 +59,33 @@ class CollisionChecker:
         :param neighbour_sizes: (length, width) per neighbour (S, 2), default ``neighbour_size``
         :return: (N,) True where candidate i collides
         """
-        n = neighbours.shape[0]
+        hits = self._hits(ego, neighbours, present, neighbour_sizes)
+        # reshape + any is several times cheaper than any(axis=(1, 2)) on arrays this small
+        return np.asarray(hits.reshape(len(hits), -1).any(axis=1))
+
+    def first_collision(
+        self,
+        ego: NDArray[np.floating],
+        neighbours: NDArray[np.floating],
+        present: NDArray[np.bool_],
+        neighbour_sizes: NDArray[np.floating] | None = None,
+    ) -> NDArray[np.int64]:
+        """The first step at which the ego's future under each candidate overlaps a present neighbour;
+        the number of steps T where it overlaps none (arguments as :meth:`collides`).
+
+        :return: (N,) steps in 0..T
+        """
+        at_step = np.any(self._hits(ego, neighbours, present, neighbour_sizes), axis=1)  # (N, T)
+        return np.where(at_step.any(axis=1), at_step.argmax(axis=1), at_step.shape[1]).astype(np.int64)
+
+    def _hits(
+        self,
+        ego: NDArray[np.floating],
+        neighbours: NDArray[np.floating],
+        present: NDArray[np.bool_],
+        neighbour_sizes: NDArray[np.floating] | None,
+    ) -> NDArray[np.bool_]:
+        """(N, S, T): whether the ego under candidate i overlaps present neighbour j at step t."""
         length: float | NDArray[np.float64]
         width: float | NDArray[np.float64]
         if neighbour_sizes is None:
@@ -77,8 +103,7 @@ class CollisionChecker:
             hits &= present
         else:
             hits[:, ~present] = False
-        # reshape + any is several times cheaper than any(axis=(1, 2)) on arrays this small
-        return np.asarray(hits.reshape(n, -1).any(axis=1))
+        return hits
 
     def logit_mask(self, *args: NDArray, **kwargs: NDArray) -> NDArray[np.float32]:
         """The paper's mask m^c: -1e8 for colliding candidates, 0 elsewhere (see :meth:`collides`)."""

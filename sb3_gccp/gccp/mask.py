@@ -88,6 +88,7 @@ class GCCPMask:
         yield_margin, fallback = check.yield_margin, check.fallback_margin
         self.yield_checker = None if yield_margin is None else self.checker.with_margin(yield_margin)
         self.fallback_checker = None if fallback is None else self.checker.with_margin(fallback)
+        self._checked: tuple[Mapping[str, np.ndarray], np.ndarray, np.ndarray] | None = None
 
     def predict(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """Predicted futures under every candidate, e.g. for plotting (paper Fig. 8).
@@ -124,6 +125,7 @@ class GCCPMask:
         waiting = np.zeros_like(present)
         if self.yield_checker is not None:
             waiting = yielding(obs, self.sizes) & present
+        self._checked = (obs, future, present & ~waiting)
         allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
         if not allowed.any() and self.fallback_checker is not None:
             allowed = self.fallback_checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
@@ -132,6 +134,22 @@ class GCCPMask:
             standing = np.broadcast_to(latest_states(obs)[0][None, :, None], future[:, 1:].shape)
             allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
         return allowed
+
+    def latest_collision(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The candidates whose first predicted collision comes latest, for an env to fall back on when
+        :meth:`__call__` allows none (the option env's ``fallback_go_on``): the futures and boxes of the
+        check, the last ``__call__``'s when it was asked about the same observation.
+
+        :param obs: one decider observation (numpy, no batch axis)
+        :return: (N,) bool, True for every candidate whose first collision is at the latest step
+        """
+        if self._checked is None or self._checked[0] is not obs:
+            self(obs)
+        if self._checked is None or self._checked[0] is not obs:  # nothing to collide with
+            return np.ones(len(obs["subgoals"]), bool)
+        _, future, present = self._checked
+        first = self.checker.first_collision(future[:, 0], future[:, 1:], present)
+        return np.asarray(first == first.max())
 
 
 def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
