@@ -288,7 +288,8 @@ class IntersectionConfig:
     action mask allows it) until it stands, instead of the planner driving to the nearest candidate, the
     env's fallback. A planner held on a candidate it has already passed brakes for a few steps and then
     steers towards it, and a turn holds the speed, so the ego rolled on into the conflict the check had
-    just seen (ours; docs/experiments/2026-11-28-brake-when-nothing-passes.md)."""
+    just seen (ours; docs/experiments/2026-11-28-brake-when-nothing-passes.md). Where ``fallback_go_on``
+    lets the ego go on instead, it does not brake."""
     fallback_go_on: bool = False
     """Option env: when the mask function allows no candidate while the ego drives (at least 1 m/s) inside
     the junction, allow the candidates whose first predicted collision comes latest (the mask function's

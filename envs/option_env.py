@@ -78,6 +78,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self.mask_fn = mask_fn
         self._last_obs: Obs | None = None
         self._masked: np.ndarray | None = None
+        self._going_on = False
         self._verdict = np.ones(self.config.num_subgoals, bool)
         self._subgoal: np.ndarray | None = None
         self._planner_step_callback: PlannerStepCallback | None = None
@@ -132,6 +133,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         ``fallback_go_on``, while the ego drives inside the junction, the candidates whose collision is
         predicted latest. With ``observe_mask`` the verdict is the one the observation shows."""
         n = self.config.num_subgoals
+        self._going_on = False
         if self._last_obs is None:
             self._masked = np.zeros(n, bool)
             return np.ones(n, bool)
@@ -146,6 +148,7 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         latest = getattr(self.mask_fn, "latest_collision", None)
         driving = self.world.ego.speed >= GO_ON_SPEED
         if self.config.fallback_go_on and latest is not None and driving and self.world.ego_in_junction():
+            self._going_on = True
             return np.asarray(latest(obs), bool).reshape(self.config.num_subgoals)
         mask = np.zeros(self.config.num_subgoals, bool)
         mask[int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))] = True
@@ -162,7 +165,8 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         distance = goal_errors(world.ego, self._subgoal)[0]
         reached, planner_return = False, 0.0
         outcome, truncated = StepOutcome(), False
-        brake = cfg.fallback_brakes and self._masked is not None and bool(self._masked.all())
+        held = self._masked is not None and bool(self._masked.all()) and not self._going_on
+        brake = cfg.fallback_brakes and held
         for _ in range(cfg.decision_period):
             allowed = world.action_mask()
             if brake and world.ego.speed > 0.0 and allowed[EgoAction.SLOW_DOWN]:

@@ -247,6 +247,21 @@ def test_fallback_goes_on_only_while_the_ego_drives_inside_the_junction(go_on, y
     np.testing.assert_array_equal(env._masked, np.ones(12, bool))  # drawn as all masked either way
 
 
+@pytest.mark.parametrize("y, brakes", [(20.0, True), (5.0, False)], ids=["before", "inside"])
+def test_fallback_brakes_before_the_junction_and_goes_on_inside(y, brakes):
+    keys = {"fallback_brakes": True, "fallback_go_on": True}
+    env, _ = make(seed=0, spawn_probability=0.0, mask_fn=NothingPasses(), **keys)
+    planner = RecordingPlanner(env, inner=lambda obs, mask: int(EgoAction.KEEP_DIRECTION))
+    env.planner = planner
+    place_ego(env.world, 6.0, y, -np.pi / 2, 6.0)
+    env._last_obs = env._observe()
+    env.step(int(np.flatnonzero(env.action_masks())[0]))
+    if brakes:
+        assert env.world.ego.speed < 6.0 and len(planner.poses) < 10
+    else:
+        assert env.world.ego.speed >= 6.0 and len(planner.poses) == 10
+
+
 def test_fallback_go_on_holds_with_a_mask_function_that_cannot_rank():
     env, _ = make(seed=0, spawn_probability=0.0, fallback_go_on=True, mask_fn=lambda o: np.zeros(12, bool))
     place_ego(env.world, 6.0, 5.0, -np.pi / 2, 6.0)
