@@ -115,7 +115,7 @@ def main() -> None:
     parser.add_argument("--spawn-probability", type=float, default=IntersectionConfig().spawn_probability)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-masks", action="store_true", help="time ours without action_masks()")
-    parser.add_argument("--smarts-steps", type=int, default=1000, help="steps of the SMARTS timing")
+    parser.add_argument("--smarts-steps", type=int, default=1000, help="steps of the SMARTS timing (0: skip it)")
     parser.add_argument(
         "--smarts-routes",
         choices=("layout", "waypoints"),
@@ -123,6 +123,8 @@ def main() -> None:
         help="the SMARTS env's smarts_routes (waypoints: asks SMARTS for its waypoint paths every step)",
     )
     args = parser.parse_args()
+    if args.steps < 1 or args.smarts_steps < 0:
+        parser.error("--steps must be at least 1 and --smarts-steps at least 0")
     ours_env = gym.make("GCCPPlanner-v0", spawn_probability=args.spawn_probability)
     stock_env = gym.make(
         "intersection-v2",
@@ -141,7 +143,7 @@ def main() -> None:
     print(f"intersection-v2 median {stock:.2f} ms/step")
     for env in print_backend_speed(args, "traffic", "sumo", args.steps).values():
         env.close()
-    if find_spec("smarts") is not None:
+    if args.smarts_steps and find_spec("smarts") is not None:
         envs = print_backend_speed(
             args, "simulator", "smarts", args.smarts_steps, more={"smarts_routes": args.smarts_routes}
         )
