@@ -115,7 +115,7 @@ def main() -> None:
     parser.add_argument("--spawn-probability", type=float, default=IntersectionConfig().spawn_probability)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-masks", action="store_true", help="time ours without action_masks()")
-    parser.add_argument("--smarts-steps", type=int, default=1000, help="steps of the SMARTS timing (0: skip it)")
+    parser.add_argument("--smarts-steps", type=int, default=1000, help="SMARTS steps (0: skip)")
     parser.add_argument(
         "--smarts-routes",
         choices=("layout", "waypoints"),
