@@ -296,6 +296,10 @@ class IntersectionConfig:
     ``latest_collision``, where it has one) instead of the nearest: held inside the junction, the ego
     brakes to a stand on the crossing paths it was about to clear, where it is hit or stands nose to nose
     with a car waiting for it (ours; docs/experiments/2026-11-29-going-on-inside-the-junction.md)."""
+    fallback_go_on_skips_hold: bool = False
+    """Option env, with ``fallback_go_on``: the nearest candidate (the hold, 1-2 m ahead) is left out of
+    the ranking, so that the ego does not stop on a crossing path because braking there puts its predicted
+    collision a step later (ours; docs/experiments/2026-11-30-going-on-past-the-hold.md)."""
     observe_mask: bool = False
     """Option env: the decision-maker observes the mask function's verdict on each candidate (1: allowed,
     0: ruled out, before the env's fallback), under the key ``subgoal_allowed``, and its features take it
@@ -453,6 +457,7 @@ def _validate(config: IntersectionConfig) -> None:
         "scripted_stop_aligned",
         "fallback_brakes",
         "fallback_go_on",
+        "fallback_go_on_skips_hold",
         "observe_mask",
         "r_subgoal_needs_travel",
         "smarts_grid_map",

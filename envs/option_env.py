@@ -35,8 +35,9 @@ Planner = Callable[[Obs, np.ndarray], int]
 """A motion-planner: (planner observation, action mask) -> ego action."""
 MaskFunction = Callable[[Obs], np.ndarray]
 """A subgoal mask: decider observation -> bool (N,), True where the subgoal is allowed. One may also have
-a method ``latest_collision(obs)`` -> bool (N,): the candidates whose predicted collision comes latest, for
-the world key ``fallback_go_on``."""
+a method ``latest_collision(obs, exclude=None)`` -> bool (N,): the candidates whose predicted collision comes
+latest, those in the bool (N,) ``exclude`` left out, for the world keys ``fallback_go_on`` and
+``fallback_go_on_skips_hold`` (``exclude`` is passed only with the latter)."""
 GO_ON_SPEED = 1.0
 """Speed [m/s] from which the ego counts as driving, for ``fallback_go_on``."""
 VERDICT_KEY = "subgoal_allowed"
@@ -147,12 +148,13 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         """The candidates allowed when the mask function allows none (see :meth:`action_masks`)."""
         latest = getattr(self.mask_fn, "latest_collision", None)
         driving = self.world.ego.speed >= GO_ON_SPEED
+        hold = np.zeros(self.config.num_subgoals, bool)
+        hold[int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))] = True
         if self.config.fallback_go_on and latest is not None and driving and self.world.ego_in_junction():
             self._going_on = True
-            return np.asarray(latest(obs), bool).reshape(self.config.num_subgoals)
-        mask = np.zeros(self.config.num_subgoals, bool)
-        mask[int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))] = True
-        return mask
+            ranked = latest(obs, exclude=hold) if self.config.fallback_go_on_skips_hold else latest(obs)
+            return np.asarray(ranked, bool).reshape(self.config.num_subgoals)
+        return hold
 
     def step(self, action: np.int64 | int) -> tuple[Obs, float, bool, bool, dict[str, Any]]:
         """Run the planner towards subgoal ``action`` for up to T_m steps."""

@@ -181,6 +181,27 @@ def test_latest_collision_names_the_candidates_that_meet_the_car_last():
     assert mask.latest_collision(clear).all() and mask.latest_collision(obs)[0]
 
 
+def test_latest_collision_leaves_out_the_excluded_candidates():
+    # The same car 9 m ahead: without the nearest candidate, the next nearest meets it last.
+    obs = scene([(0.0, 0.0, 0.0, 8.0), (9.0, 0.0, np.pi, 0.0)])
+    mask = GCCPMask(TowardsGoal(), GCCPCheck(extrapolate_steps=20))
+    first = mask.checker.first_collision(*_futures(mask, obs))
+    latest = mask.latest_collision(obs, exclude=np.arange(G) == 0)
+    assert not latest[0] and latest.any()
+    np.testing.assert_array_equal(latest, (first == first[1:].max()) & (np.arange(G) > 0))
+    # All left out: ranked as if none were; nothing to collide with: every candidate not left out.
+    np.testing.assert_array_equal(mask.latest_collision(obs, exclude=np.ones(G, bool)), np.arange(G) == 0)
+    clear = scene([(0.0, 0.0, 0.0, 8.0), (-30.0, 0.0, 0.0, 0.0)])
+    np.testing.assert_array_equal(mask.latest_collision(clear, exclude=np.arange(G) == 0), np.arange(G) > 0)
+
+
+def _futures(mask, obs):
+    """The ego's and the neighbours' checked futures and presence of ``mask``'s last check of ``obs``."""
+    mask(obs)
+    _, future, present = mask._checked
+    return future[:, 0], future[:, 1:], present
+
+
 def test_mask_allows_everything_without_neighbours():
     class Failing(nn.Module):
         def forward(self, obs, goals):

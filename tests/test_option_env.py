@@ -226,7 +226,9 @@ class NothingPasses:
     def __call__(self, obs):
         return np.zeros(12, bool)
 
-    def latest_collision(self, obs):
+    def latest_collision(self, obs, exclude=None):
+        if exclude is not None and exclude[7]:
+            return np.arange(12) == 8
         return np.arange(12) == 7
 
 
@@ -260,6 +262,24 @@ def test_fallback_brakes_before_the_junction_and_goes_on_inside(y, brakes):
         assert env.world.ego.speed < 6.0 and len(planner.poses) < 10
     else:
         assert env.world.ego.speed >= 6.0 and len(planner.poses) == 10
+
+
+@pytest.mark.parametrize("skips", [False, True])
+def test_fallback_go_on_skips_hold_leaves_the_nearest_candidate_out_of_the_ranking(skips):
+    class RanksTheHold(NothingPasses):
+        """Ranks the nearest candidate latest unless it is left out."""
+
+        def latest_collision(self, obs, exclude=None):
+            nearest = np.arange(12) == int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))
+            return nearest if exclude is None else ~exclude & (np.arange(12) == 7)
+
+    keys = {"fallback_go_on": True, "fallback_go_on_skips_hold": skips}
+    env, _ = make(seed=0, spawn_probability=0.0, mask_fn=RanksTheHold(), **keys)
+    place_ego(env.world, 6.0, 5.0, -np.pi / 2, 6.0)  # driving inside the junction
+    env._last_obs = env._observe()
+    nearest = int(np.argmin(np.hypot(*env._last_obs["subgoals"][:, :2].T)))
+    assert nearest != 7
+    assert np.flatnonzero(env.action_masks()).tolist() == [7 if skips else nearest]
 
 
 def test_fallback_go_on_holds_with_a_mask_function_that_cannot_rank():

@@ -135,20 +135,27 @@ class GCCPMask:
             allowed &= self.yield_checker.action_mask(future[:, 0], standing, waiting)
         return allowed
 
-    def latest_collision(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+    def latest_collision(
+        self, obs: Mapping[str, np.ndarray], exclude: np.ndarray | None = None
+    ) -> np.ndarray:
         """The candidates whose first predicted collision comes latest, for an env to fall back on when
         :meth:`__call__` allows none (the option env's ``fallback_go_on``): the futures and boxes of the
         check, the last ``__call__``'s when it was asked about the same observation.
 
         :param obs: one decider observation (numpy, no batch axis)
+        :param exclude: (N,) bool, candidates left out of the ranking (all of them: none left out)
         :return: (N,) bool, True for every candidate whose first collision is at the latest step
         """
+        n = len(obs["subgoals"])
+        ranked = np.ones(n, bool) if exclude is None else ~np.asarray(exclude, bool).reshape(n)
+        if not ranked.any():
+            ranked[:] = True
         if self._checked is None or self._checked[0] is not obs:
             self(obs)
         if self._checked is None or self._checked[0] is not obs:  # nothing to collide with
-            return np.ones(len(obs["subgoals"]), bool)
+            return ranked
         _, future, present = self._checked
-        first = self.checker.first_collision(future[:, 0], future[:, 1:], present)
+        first = np.where(ranked, self.checker.first_collision(future[:, 0], future[:, 1:], present), -1)
         return np.asarray(first == first.max())
 
 
