@@ -299,7 +299,7 @@ class IntersectionConfig:
     fallback_go_on_skips_hold: bool = False
     """Option env, with ``fallback_go_on``: the nearest candidate (the hold, 1-2 m ahead) is left out of
     the ranking, so that the ego does not stop on a crossing path because braking there puts its predicted
-    collision a step later (ours; docs/experiments/2026-11-30-going-on-past-the-hold.md)."""
+    collision a step later (ours; not adopted: docs/experiments/2026-11-30-going-on-past-the-hold.md)."""
     observe_mask: bool = False
     """Option env: the decision-maker observes the mask function's verdict on each candidate (1: allowed,
     0: ruled out, before the env's fallback), under the key ``subgoal_allowed``, and its features take it
