@@ -220,6 +220,23 @@ def test_fallback_brakes_leave_the_planner_alone_when_a_candidate_passes():
     assert len(planner.poses) == 10 and env.world.ego.speed >= start
 
 
+@pytest.mark.parametrize("task", ["left", "straight"])
+def test_fallback_keys_never_act_without_a_mask_function(task):
+    keys = {"fallback_brakes": True, "fallback_go_on": True}
+    runs = []
+    for world in ({}, keys):  # w/o GCCP: every candidate passes, so neither fallback is ever reached
+        env, _ = make(seed=3, task=task, **world)
+        trace = []
+        for action in (3, 3, 0, 5, 3, 3, 3, 3):
+            assert env.action_masks().all()
+            _, reward, terminated, truncated, _ = env.step(action)
+            trace.append((*env.world.ego.as_array(), reward))
+            if terminated or truncated:
+                break
+        runs.append(trace)
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
 class NothingPasses:
     """A mask function that allows no candidate and predicts the latest collision under candidate 7."""
 
