@@ -5,7 +5,8 @@ At every decision where the ego stands (below 0.5 m/s) the scene is one of:
 - queued: the ego has not entered the junction and a standing car ahead of it waits, uncommitted, at
   its stop line for a gap in the crossing streams (nothing the ego can do short of leaving its lane);
 - standoff: a committed car within 10 m stands too, typically because the ego's box reaches its path,
-  while the GCCP mask leaves the ego only the candidate under it;
+  while the GCCP mask leaves the ego only the candidate under it (on SUMO's traffic and in SMARTS, whose
+  drivers do not report a commitment, a car inside the junction box counts as committed);
 - stall: neither, and the decider sent the ego to a subgoal beyond reach (``subgoal_reach_radius``)
   that the motion-planner does not drive to;
 - other: anything else (the decider holds the ego on the candidate under it, for moving traffic).
@@ -16,6 +17,7 @@ example creeping through the junction too slowly).
 Prints one line per timed-out episode and, last, ``timeouts <n> queued <q> standoff <s> stall <p> other <o>``.
 
     python benchmarks/timeouts.py --model pretrained --tasks left --episodes-per-task 50 --seed 0
+    python benchmarks/timeouts.py --model pretrained/smarts --tasks left,right --seed 1000 --set simulator=smarts
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import torch as th
 from gccp_envs.config import DT, parse_tasks
 from gccp_envs.rewards import goal_errors
 from gccp_envs.traffic import VEHICLE_LENGTH
+from sb3_gccp.commands.common import CLIError, add_world_overrides, parse_assignments
 from sb3_gccp.evaluation import run_episode
 from sb3_gccp.hierarchy import load_hierarchy
 
@@ -56,9 +59,11 @@ def waiting_reason(env: gym.Env) -> str | None:
     ego_out = max(abs(ego.x), abs(ego.y))
     ahead = np.maximum(np.abs(traffic.pose[idx, 0]), np.abs(traffic.pose[idx, 1])) < ego_out
     outside = ego_out > world.layout.junction + VEHICLE_LENGTH / 2
-    if outside and (standing & ahead & ~traffic.committed[idx]).any():
+    inside = np.maximum(np.abs(traffic.pose[idx, 0]), np.abs(traffic.pose[idx, 1])) < world.layout.junction
+    committed = getattr(traffic, "committed", np.zeros(len(traffic.pose), bool))[idx] | inside
+    if outside and (standing & ahead & ~committed).any():
         return "queued"
-    if (standing & traffic.committed[idx]).any():
+    if (standing & committed).any():
         return "standoff"
     subgoal = option_env.subgoal  # type: ignore[attr-defined]
     if subgoal is not None and goal_errors(ego, subgoal)[0] > world.config.subgoal_reach_radius:
@@ -76,14 +81,15 @@ def main() -> None:
     parser.add_argument("--tasks", default="left", help="comma-separated: left,straight,right")
     parser.add_argument("--episodes-per-task", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0, help="first traffic seed")
+    add_world_overrides(parser)
     args = parser.parse_args()
     try:
         tasks = parse_tasks(args.tasks)
         hierarchy = load_hierarchy(args.model)
-    except (ValueError, OSError) as err:
+        env = hierarchy.make_env(parse_assignments(args.set))
+    except (ValueError, TypeError, OSError, CLIError) as err:
         parser.error(str(err))
     th.set_num_threads(1)
-    env = hierarchy.make_env()
     policy = hierarchy.decider_policy(env.config)
     counts = {"queued": 0, "standoff": 0, "stall": 0, "other": 0}
     decision_s = env.unwrapped.config.decision_period * DT  # type: ignore[attr-defined]
@@ -101,6 +107,7 @@ def main() -> None:
             counts[kind] += 1
             stood = ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
             print(f"{task} seed {seed}: {kind} (standing {stood})")
+    env.close()
     print(f"{total} episodes")
     print(f"timeouts {sum(counts.values())} " + " ".join(f"{k} {v}" for k, v in counts.items()))
 

@@ -12,10 +12,14 @@ is open if that sum is within the episode's time limit; a flow is unwinnable if 
 The bound is generous to the policy: it ignores the car length between the ego and the stop line and
 any traffic after the head of the queue, so the true ceiling can only be lower.
 
+On SUMO's traffic and in SMARTS (``--set traffic=sumo``, ``--set simulator=smarts``), whose drivers report
+no commitment, a car commits when its front crosses its stop line.
+
 Prints one line per unwinnable flow, then per task the best success any policy can reach on the
 flows, and last ``max_success <rate>`` over all tasks.
 
     python benchmarks/winnable.py --episodes-per-task 50 --seed 0
+    python benchmarks/winnable.py --episodes-per-task 50 --seed 0 --set simulator=smarts
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ from tqdm import tqdm
 from gccp_envs.action import EgoAction
 from gccp_envs.config import DT, TASKS, IntersectionConfig, parse_tasks
 from gccp_envs.traffic import VEHICLE_LENGTH
-from gccp_envs.world import EGO_ARM, IntersectionWorld
+from gccp_envs.world import EGO_ARM, IntersectionWorld, make_world
+from sb3_gccp.commands.common import CLIError, add_world_overrides, load_world_config
 
 HEAD_OF_QUEUE = VEHICLE_LENGTH + 2.0
 """A car whose front is within this distance [m] of its stop line leaves no room for the ego ahead of it."""
@@ -47,6 +52,15 @@ def least_exit_time(config: IntersectionConfig, distance: float) -> float:
     return steps * DT
 
 
+def committed(world: IntersectionWorld, slots: np.ndarray) -> np.ndarray:
+    """Which of the vehicles in ``slots`` have committed to crossing: as our traffic reports it, or, for a
+    backend that reports none, once the front has crossed the stop line."""
+    traffic = world.traffic
+    if hasattr(traffic, "committed"):
+        return np.asarray(traffic.committed[slots])
+    return np.asarray(traffic.s[slots] + traffic.length[slots] / 2.0 > world.layout.stop_s)
+
+
 def lane_opening_times(world: IntersectionWorld, task: str) -> dict[int, float]:
     """Per task lane, the time [s] its head-of-queue cars have all committed (inf: not within the limit).
 
@@ -58,7 +72,7 @@ def lane_opening_times(world: IntersectionWorld, task: str) -> dict[int, float]:
     front = layout.stop_s - (traffic.s[idx] + traffic.length[idx] / 2.0)
     waiting = (
         (layout.path_arm[traffic.path[idx]] == EGO_ARM)
-        & ~traffic.committed[idx]
+        & ~committed(world, idx)
         & (front < HEAD_OF_QUEUE)
         & (traffic.speed[idx] < STANDING)
     )
@@ -69,7 +83,8 @@ def lane_opening_times(world: IntersectionWorld, task: str) -> dict[int, float]:
     committed_at: dict[int, float] = {}
     for step in range(1, round(config.duration / DT) + 1):
         world.step(EgoAction.SLOW_DOWN)
-        for slot in traffic.indices[traffic.committed[traffic.indices]]:
+        idx = traffic.indices
+        for slot in idx[committed(world, idx)]:
             committed_at.setdefault(int(traffic.uid[slot]), step * DT)
     return {
         lane: max((committed_at.get(u, np.inf) for u in uids), default=0.0) for lane, uids in heads.items()
@@ -81,15 +96,19 @@ def main() -> None:
     parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated: left,straight,right")
     parser.add_argument("--episodes-per-task", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0, help="first traffic seed")
+    add_world_overrides(parser)
     args = parser.parse_args()
     try:
         tasks = parse_tasks(args.tasks)
-    except ValueError as err:
+        config = load_world_config(None, args.set)
+    except (ValueError, CLIError) as err:
         parser.error(str(err))
     if args.episodes_per_task < 1:
         parser.error("--episodes-per-task must be positive")
-    config = IntersectionConfig()
-    world = IntersectionWorld(config)
+    try:
+        world = make_world(config)
+    except (ValueError, ImportError) as err:
+        parser.error(str(err))
     winnable_total = 0
     for task in tasks:
         path = world.layout.paths_from(EGO_ARM, turn=task)[0]
@@ -111,6 +130,7 @@ def main() -> None:
             )
         winnable_total += winnable
         print(f"{task}: {winnable} of {len(seeds)} flows winnable, max success {winnable / len(seeds):.3f}")
+    world.close()
     print(f"max_success {winnable_total / (len(tasks) * args.episodes_per_task):.3f}")
 
 
