@@ -17,7 +17,7 @@ example creeping through the junction too slowly).
 Prints one line per timed-out episode and, last, ``timeouts <n> queued <q> standoff <s> stall <p> other <o>``.
 
     python benchmarks/timeouts.py --model pretrained --tasks left --episodes-per-task 50 --seed 0
-    python benchmarks/timeouts.py --model pretrained/smarts --tasks left,right --seed 1000 --set simulator=smarts
+    python benchmarks/timeouts.py --model pretrained/smarts --seed 1000 --set simulator=smarts
 """
 
 from __future__ import annotations
