@@ -57,9 +57,10 @@ def waiting_reason(env: gym.Env) -> str | None:
     distance = np.hypot(traffic.pose[idx, 0] - ego.x, traffic.pose[idx, 1] - ego.y)
     standing = (distance < NEAR) & (traffic.speed[idx] < STOPPED)
     ego_out = max(abs(ego.x), abs(ego.y))
-    ahead = np.maximum(np.abs(traffic.pose[idx, 0]), np.abs(traffic.pose[idx, 1])) < ego_out
+    out = np.maximum(np.abs(traffic.pose[idx, 0]), np.abs(traffic.pose[idx, 1]))
+    ahead = out < ego_out
     outside = ego_out > world.layout.junction + VEHICLE_LENGTH / 2
-    inside = np.maximum(np.abs(traffic.pose[idx, 0]), np.abs(traffic.pose[idx, 1])) < world.layout.junction
+    inside = out < world.layout.junction
     committed = getattr(traffic, "committed", np.zeros(len(traffic.pose), bool))[idx] | inside
     if outside and (standing & ahead & ~committed).any():
         return "queued"
