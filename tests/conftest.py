@@ -10,6 +10,8 @@ os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
 from collections.abc import Callable, Iterator
+from pathlib import Path
+from subprocess import CompletedProcess
 from typing import Any
 
 import numpy as np
@@ -70,3 +72,38 @@ def one_thread() -> Iterator[None]:
     th.set_num_threads(1)
     yield
     th.set_num_threads(threads)
+
+
+@pytest.fixture
+def cli(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> Callable[..., CompletedProcess[str]]:
+    """``cli(*args, cwd=PATH)``: ``sb3_gccp ARGS`` run in this process from ``PATH``, its exit status and
+    output as ``subprocess.run`` reports them. For commands that start no worker process: the seconds a
+    fresh interpreter costs to import torch buy nothing there (``helpers.run_cli`` runs one)."""
+    from sb3_gccp.cli import main
+
+    def run(*args: str, cwd: Path) -> CompletedProcess[str]:
+        monkeypatch.chdir(cwd)
+        capsys.readouterr()
+        try:
+            status = main(list(args))
+        except SystemExit as exit_:  # argparse's own usage errors
+            status = exit_.code if isinstance(exit_.code, int) else 1
+        out, err = capsys.readouterr()
+        return CompletedProcess(["sb3_gccp", *args], status, out, err)
+
+    return run
+
+
+@pytest.fixture
+def cli_error(cli: Callable[..., CompletedProcess[str]]) -> Callable[..., list[str]]:
+    """``cli_error(cwd, *args)``: run ``sb3_gccp ARGS`` in this process, check that it exits with status 2,
+    and return the lines it wrote to stderr."""
+
+    def run(cwd: Path, *args: str) -> list[str]:
+        result = cli(*args, cwd=cwd)
+        assert result.returncode == 2, result.stderr
+        return result.stderr.strip().splitlines()
+
+    return run

@@ -96,6 +96,13 @@ TINY_FLAT_POLICY_KWARGS = {
 """``policy_kwargs`` of a baseline on the flat env with the tiny scene encoder."""
 
 
+def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``sb3_gccp ARGS`` in a subprocess started in ``cwd``, as a user runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
 def run_zoo(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """``python -m sb3_gccp.zoo ARGS`` in a subprocess (rl-zoo3's trainer through our launcher)."""
     return subprocess.run(

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch as th
 import yaml
-from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS
+from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS, run_cli
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.planner_env import GCCPPlannerEnv
@@ -40,12 +38,6 @@ TINY_DECIDER = {
 """A decider run of seconds: 2 s episodes (2 decisions each), masks on after 2 episodes."""
 
 
-def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
-    )
-
-
 @pytest.fixture(scope="module")
 def tiny_planner(tmp_path_factory: pytest.TempPathFactory) -> Path:
     settings = TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"]
@@ -57,11 +49,11 @@ def tiny_planner(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
+def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner, cli):
     config = tmp_path / "tiny.yml"
     config.write_text(yaml.safe_dump(TINY_DECIDER))
     args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", "runs")
-    result = sb3_gccp(*args, "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
+    result = run_cli(*args, "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (run,) = (tmp_path / "runs" / "decider").iterdir()
     assert run.name.startswith("GCCPDecider-v0_2_")
@@ -86,14 +78,14 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
 
     # The same seed gives the same table; a decider .zip inside the run folder works as well.
     evaluate = ("evaluate", "--episodes-per-task", "1", "--tasks", "left,right", "--seed", "5")
-    first = sb3_gccp(*evaluate, "--model", str(run), "--json", "table.json", cwd=tmp_path)
-    second = sb3_gccp(*evaluate, "--model", str(run / "decider.zip"), cwd=tmp_path)
+    first = cli(*evaluate, "--model", str(run), "--json", "table.json", cwd=tmp_path)
+    second = cli(*evaluate, "--model", str(run / "decider.zip"), cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     assert "| overall | 2 |" in first.stdout
     assert first.stdout.splitlines()[1:] == second.stdout.splitlines()[1:]
     assert set(json.loads((tmp_path / "table.json").read_text())["table"]) == {"left", "right", "overall"}
     # Sampled decisions are seeded too.
-    sampled = [sb3_gccp(*evaluate, "--model", str(run), "--stochastic", cwd=tmp_path) for _ in range(2)]
+    sampled = [cli(*evaluate, "--model", str(run), "--stochastic", cwd=tmp_path) for _ in range(2)]
     assert sampled[0].returncode == 0, sampled[0].stderr
     assert "stochastic decisions" in sampled[0].stdout and sampled[0].stdout == sampled[1].stdout
 
@@ -102,7 +94,7 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner):
     settings = yaml.safe_load((run / "config.yml").read_text())
     settings["gccp"]["n_episodes"] = 5
     (run / "config.yml").write_text(yaml.safe_dump(settings))
-    result = sb3_gccp("train", "--stage", "decider", "--log-folder", "runs", "--resume", cwd=tmp_path)
+    result = run_cli("train", "--stage", "decider", "--log-folder", "runs", "--resume", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     with (run / "episodes.csv").open() as file:
         resumed = list(csv.DictReader(file))
@@ -120,7 +112,7 @@ def test_the_same_seed_trains_the_same_decider_and_predictor(tmp_path, tiny_plan
     runs = []
     for folder in ("a", "b"):
         args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", folder, "--seed", "3")
-        result = sb3_gccp(*args, "--planner", str(tiny_planner), cwd=tmp_path)
+        result = run_cli(*args, "--planner", str(tiny_planner), cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         (run,) = (tmp_path / folder / "decider").iterdir()
         runs.append(run)
@@ -157,10 +149,8 @@ def test_the_same_seed_trains_the_same_decider_and_predictor(tmp_path, tiny_plan
         (["evaluate", "--model", ".", "--episodes-per-task", "0"], "--episodes-per-task must be at least 1"),
     ],
 )
-def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
-    result = sb3_gccp(*args, cwd=tmp_path)
-    assert result.returncode == 2
-    (line,) = result.stderr.strip().splitlines()
+def test_bad_input_is_one_line_and_exit_2(tmp_path, cli_error, args, message):
+    (line,) = cli_error(tmp_path, *args)
     assert line.startswith(f"sb3_gccp: error: {message}")
     assert not (tmp_path / "runs").exists()
 
@@ -172,9 +162,7 @@ def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path
     decider["gccp"].update(n_episodes=2, planner_episodes=2)
     config = tmp_path / "both.yml"
     config.write_text(yaml.safe_dump({"GCCPPlanner-v0": planner, "GCCPDecider-v0": decider}))
-    result = sb3_gccp(
-        "train", "--stage", "all", "--config", str(config), "--log-folder", "runs", cwd=tmp_path
-    )
+    result = run_cli("train", "--stage", "all", "--config", str(config), "--log-folder", "runs", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     saved = [line for line in result.stdout.splitlines() if line.startswith("saved ")]
     planner_zip, run = (Path(line.split(" ", 1)[1]) for line in saved)
@@ -207,7 +195,7 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
         "--gccp",
         "predictor=cv",
     )
-    result = sb3_gccp(*args, cwd=tmp_path)
+    result = run_cli(*args, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (run,) = (tmp_path / "runs" / "decider").iterdir()
     assert not (run / "planner.zip").exists() and not (run / "predictor.pt").exists()
@@ -218,7 +206,7 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
     assert yaml.safe_load((run / "config.yml").read_text())["env_kwargs"]["duration"] == 1.5
     # --gccp replaced the entry's predictor (learned) the same way.
     assert yaml.safe_load((run / "config.yml").read_text())["gccp"]["predictor"] == "cv"
-    result = sb3_gccp(
+    result = run_cli(
         "evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr

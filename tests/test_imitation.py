@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -12,7 +11,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-from helpers import TINY_PLANNER_HYPERPARAMS
+from helpers import TINY_PLANNER_HYPERPARAMS, run_cli
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
@@ -163,17 +162,15 @@ def test_bad_imitation_settings_name_the_problem(values, message):
         ImitationSettings.from_dict(values)
 
 
-def _train(tmp_path: Path, entry: dict) -> subprocess.CompletedProcess[str]:
+def _train_args(tmp_path: Path, entry: dict) -> list[str]:
+    """The planner stage's command line over a config file holding ``entry``."""
     config = tmp_path / "imitation.yml"
     config.write_text(yaml.safe_dump({"GCCPPlanner-v0": entry}))
-    args = ["train", "--stage", "planner", "--config", str(config), "--log-folder", "runs", "--no-progress"]
-    return subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.cli", *args],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    return ["train", "--stage", "planner", "--config", str(config), "--log-folder", "runs", "--no-progress"]
+
+
+def _train(tmp_path: Path, entry: dict) -> subprocess.CompletedProcess[str]:
+    return run_cli(*_train_args(tmp_path, entry), cwd=tmp_path)
 
 
 def test_planner_stage_clones_then_saves_without_ppo_steps(tmp_path):
@@ -243,16 +240,12 @@ def test_expert_data_written_into_given_rows_are_the_same_and_leave_the_other_ro
         collect_expert(WORLD, 20, seed=4, out=room.rows(10, 40))
 
 
-def test_zero_ppo_steps_without_imitation_and_a_bad_imitation_key_are_one_line_errors(tmp_path):
+def test_zero_ppo_steps_without_imitation_and_a_bad_imitation_key_are_one_line_errors(tmp_path, cli_error):
     entry = {**TINY_PLANNER_HYPERPARAMS["GCCPPlanner-v0"], "n_timesteps": 0}
-    result = _train(tmp_path, entry)
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [
-        "sb3_gccp: error: n_timesteps must be positive and n_envs positive"
-    ]
-    result = _train(tmp_path, {**entry, "imitation": {"epoch": 1}})
-    assert result.returncode == 2
-    assert "epoch" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    lines = cli_error(tmp_path, *_train_args(tmp_path, entry))
+    assert lines == ["sb3_gccp: error: n_timesteps must be positive and n_envs positive"]
+    (line,) = cli_error(tmp_path, *_train_args(tmp_path, {**entry, "imitation": {"epoch": 1}}))
+    assert "epoch" in line
 
 
 def test_the_default_planner_recipe_clones_then_trains_ppo_with_a_cloning_term():

@@ -8,15 +8,9 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import TINY_PLANNER_HYPERPARAMS
+from helpers import TINY_PLANNER_HYPERPARAMS, run_cli
 
 TINY = TINY_PLANNER_HYPERPARAMS
-
-
-def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
-    )
 
 
 @pytest.fixture
@@ -27,7 +21,7 @@ def tiny_config(tmp_path: Path) -> Path:
 
 
 def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_config):
-    result = sb3_gccp(
+    result = run_cli(
         "train",
         "--stage",
         "planner",
@@ -62,7 +56,7 @@ def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_c
     model = run / "checkpoints" / "planner_32_steps" / "planner.zip"
     model.write_bytes(model.read_bytes()[:1000])
     (run / "planner.zip").unlink()
-    result = sb3_gccp(
+    result = run_cli(
         "train", "--stage", "planner", "--log-folder", "runs", "--resume", "-v", "1", cwd=tmp_path
     )
     assert result.returncode == 0, result.stderr
@@ -78,7 +72,7 @@ def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_c
     assert all(data.count(b"t_start") == 1 for data in monitor.values())  # appended to, one header
 
     # A resume that fails (a planner run is no decider run) leaves the run as it was.
-    result = sb3_gccp("train", "--stage", "decider", "--resume", str(run), cwd=tmp_path)
+    result = run_cli("train", "--stage", "decider", "--resume", str(run), cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
         "sb3_gccp: error: checkpoints/planner_32_steps holds no predictor.pt: not a checkpoint of this stage"
@@ -112,10 +106,9 @@ def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_c
         (["-n", "0"], "-n/--n-timesteps must be positive"),
     ],
 )
-def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+def test_bad_input_is_one_line_and_exit_2(tmp_path, cli_error, args, message):
     (tmp_path / "bad.yml").write_text("GCCPPlanner-v0:\n  n_step: 8\n")
     (tmp_path / "badworld.yml").write_text("GCCPPlanner-v0:\n  env_kwargs: {spawn_prob: 0.1}\n")
-    result = sb3_gccp("train", "--stage", "planner", "--log-folder", "runs", *args, cwd=tmp_path)
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [f"sb3_gccp: error: {message}"]
+    lines = cli_error(tmp_path, "train", "--stage", "planner", "--log-folder", "runs", *args)
+    assert lines == [f"sb3_gccp: error: {message}"]
     assert not (tmp_path / "runs" / "planner").exists() or not any((tmp_path / "runs" / "planner").iterdir())

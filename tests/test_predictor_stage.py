@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
+from helpers import run_cli
 from sb3_contrib import MaskablePPO
 from test_policies import TINY_POLICY
 
 from sb3_gccp.gccp.predictor import load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.policies import MotionPlannerPolicy
-
-
-def sb3_gccp(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
-    )
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +26,7 @@ def planner(tmp_path_factory) -> Path:
 
 def test_predictor_stage_end_to_end(tmp_path, planner):
     tiny = ("--episodes", "2", "--heldout-episodes", "1", "--gradient-steps", "4", "--eval-every", "2")
-    result = sb3_gccp(
+    result = run_cli(
         "train",
         "--stage",
         "predictor",
@@ -61,7 +54,7 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
     assert not load_predictor(run / "predictor.pt").config.cv_residual  # the paper's decoder by default
 
     # The saved buffer trains again, with a share of it held out, here with residual decoders.
-    again = sb3_gccp(
+    again = run_cli(
         "train",
         "--stage",
         "predictor",
@@ -83,7 +76,7 @@ def test_predictor_stage_end_to_end(tmp_path, planner):
 
 def test_predictor_stage_collects_with_the_scripted_planner(tmp_path):
     tiny = ("--episodes", "1", "--heldout-episodes", "1", "--gradient-steps", "2", "--eval-every", "2")
-    result = sb3_gccp("train", "--stage", "predictor", "--planner", "scripted", *tiny, cwd=tmp_path)
+    result = run_cli("train", "--stage", "predictor", "--planner", "scripted", *tiny, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (run,) = (tmp_path / "runs" / "predictor").iterdir()
     assert len(EpisodeReplayBuffer.load(run / "heldout.npz")) > 0 and (run / "fig8.png").is_file()
@@ -106,9 +99,8 @@ def test_predictor_stage_collects_with_the_scripted_planner(tmp_path):
         (("--planner", "PLANNER", "--predictor-set", "cv_residual"), "--predictor-set expects KEY=VALUE"),
     ],
 )
-def test_bad_predictor_stage_input_is_one_line(tmp_path, planner, args, message):
+def test_bad_predictor_stage_input_is_one_line(tmp_path, cli_error, planner, args, message):
     args = tuple(str(planner) if a == "PLANNER" else a for a in args)
-    result = sb3_gccp("train", "--stage", "predictor", *args, "--episodes", "1", cwd=tmp_path)
-    assert result.returncode == 2
-    assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    (line,) = cli_error(tmp_path, "train", "--stage", "predictor", *args, "--episodes", "1")
+    assert message in line
     assert not (tmp_path / "runs").exists()  # nothing half-made left behind

@@ -6,13 +6,12 @@ import csv
 import json
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch as th
 import yaml
-from helpers import reproduce
+from helpers import reproduce, run_cli
 
 from sb3_gccp.cli import main
 from sb3_gccp.hyperparams import default_config_file, load_hyperparams
@@ -102,12 +101,6 @@ def test_a_second_run_skips_finished_methods_and_restarts_an_unfinished_one(repr
     assert (root / "dqn" / "training.json").is_file()
 
 
-def sb3_gccp(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "sb3_gccp.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=300
-    )
-
-
 @pytest.mark.slow  # 30 s; tests/test_export.py covers export in the fast tier
 def test_export_gives_small_folders_that_evaluate_like_their_runs(reproduced, tmp_path):
     folder, result = reproduced
@@ -119,21 +112,21 @@ def test_export_gives_small_folders_that_evaluate_like_their_runs(reproduced, tm
         ("ppo", "baseline ppo", ("model",)),
     ):
         run, out = root / name, tmp_path / name
-        exported = sb3_gccp(tmp_path, "export", str(run), str(out))
+        exported = run_cli("export", str(run), str(out), cwd=tmp_path)
         assert exported.returncode == 0, exported.stderr
         for model in models:
             assert (out / f"{model}.zip").stat().st_size < (run / f"{model}.zip").stat().st_size, model
         assert (out / "episodes.csv").read_bytes() == (run / "episodes.csv").read_bytes()
-        tables = [sb3_gccp(tmp_path, *evaluate, "--model", str(path)) for path in (run, out)]
+        tables = [run_cli(*evaluate, "--model", str(path), cwd=tmp_path) for path in (run, out)]
         assert all(t.returncode == 0 for t in tables), [t.stderr for t in tables]
         assert tables[0].stdout.startswith(f"{kind} {run}")
         assert tables[0].stdout.splitlines()[1:] == tables[1].stdout.splitlines()[1:]
 
-    again = sb3_gccp(tmp_path, "export", str(root / "ours"), str(tmp_path / "ours"))
+    again = run_cli("export", str(root / "ours"), str(tmp_path / "ours"), cwd=tmp_path)
     assert again.returncode == 2
     assert again.stderr.strip().endswith("exists and is not empty: export into a new folder")
-    assert sb3_gccp(tmp_path, "export", str(tmp_path), str(tmp_path / "x")).returncode == 2
-    stochastic = sb3_gccp(tmp_path, *evaluate, "--model", str(tmp_path / "ppo"), "--stochastic")
+    assert run_cli("export", str(tmp_path), str(tmp_path / "x"), cwd=tmp_path).returncode == 2
+    stochastic = run_cli(*evaluate, "--model", str(tmp_path / "ppo"), "--stochastic", cwd=tmp_path)
     assert stochastic.returncode == 2 and "--stochastic" in stochastic.stderr
 
 
