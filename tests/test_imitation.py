@@ -23,6 +23,7 @@ from sb3_gccp.training.imitation import (
     clone,
     collect_expert,
     discounted_returns,
+    policy_driver,
 )
 
 WORLD = IntersectionConfig(spawn_probability=0.0, warmup_time=0.0, duration=4.0)
@@ -220,6 +221,20 @@ def test_dagger_data_are_the_drivers_states_with_the_experts_actions():
     merged = data + collect_expert(WORLD, 10, seed=2)
     assert len(merged.actions) == 50 and merged.obs["goal"].shape[0] == 50
     assert merged.agreement == (data.agreement * 40 + 10) / 50
+
+
+def test_two_labelling_processes_give_the_same_data_as_one():
+    env = gym.make("GCCPPlanner-v0", config=WORLD)
+    model = MaskablePPO("MultiInputPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0)
+    driver = policy_driver(model)  # the DAgger case: the policy must reach the processes too
+    one, two = (collect_expert(WORLD, 90, seed=7, driver=driver, workers=n) for n in (1, 2))
+    assert one.episodes == two.episodes >= 2  # 4 s episodes: the processes share them
+    for key, value in one.obs.items():
+        np.testing.assert_array_equal(two.obs[key], value)
+    np.testing.assert_array_equal(two.masks, one.masks)
+    np.testing.assert_array_equal(two.actions, one.actions)
+    np.testing.assert_array_equal(two.returns, one.returns)
+    assert two.agreement == one.agreement < 1.0  # the untrained policy drove, not the expert
 
 
 def test_expert_data_written_into_given_rows_are_the_same_and_leave_the_other_rows_alone():

@@ -19,7 +19,10 @@ which adds the demonstrations' likelihood to the policy gradient.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import itertools
+import multiprocessing
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +31,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from sb3_contrib import MaskablePPO
+from sb3_contrib.common.maskable.policies import MaskableActorCriticPolicy
 from stable_baselines3.common.callbacks import BaseCallback
 
 from gccp_envs.config import (
@@ -80,6 +84,9 @@ class ImitationSettings:
     bc_steps: int = 0
     """Cloning gradient steps (``batch_size`` transitions each, PPO's optimiser and learning rate) on
     the data set after every PPO update, so that PPO cannot drift far from the expert. 0: none."""
+    workers: int = 1
+    """Processes that drive and label the expert's and the DAgger rounds' episodes side by side (ours; a
+    speed setting only: the data set is the same for any number)."""
 
     def __post_init__(self) -> None:
         if self.expert not in EXPERTS:
@@ -90,7 +97,7 @@ class ImitationSettings:
             EXPERTS[self.expert](IntersectionConfig(), **self.expert_kwargs)
         except (TypeError, ValueError) as error:
             raise ValueError(f"imitation.expert_kwargs for expert {self.expert!r}: {error}") from None
-        for name in ("expert_steps", "epochs", "batch_size", "dagger_steps"):
+        for name in ("expert_steps", "epochs", "batch_size", "dagger_steps", "workers"):
             require_int(f"imitation.{name}", getattr(self, name))
         if self.dagger_epochs is not None:
             require_int("imitation.dagger_epochs", self.dagger_epochs)
@@ -198,17 +205,127 @@ def _mean_agreement(first: ExpertData, second: ExpertData) -> float:
 
 
 Driver = Callable[[dict[str, np.ndarray], np.ndarray], int]
-"""A planner as a function of (observation, action mask) to an action."""
 
 
-def policy_driver(model: MaskablePPO) -> Driver:
-    """The model's most likely action under the mask (how the frozen planner drives)."""
+class PolicyDriver:
+    """A policy's most likely action under the mask (how the frozen planner drives). An object rather
+    than a closure, so that it pickles into the processes that label in parallel.
 
-    def drive(obs: dict[str, np.ndarray], mask: np.ndarray) -> int:
-        action, _ = model.predict(obs, action_masks=mask, deterministic=True)
+    :param policy: the policy of the model being cloned
+    """
+
+    def __init__(self, policy: MaskableActorCriticPolicy) -> None:
+        self.policy = policy
+
+    def __call__(self, obs: dict[str, np.ndarray], mask: np.ndarray) -> int:
+        action, _ = self.policy.predict(obs, action_masks=mask, deterministic=True)
         return int(action)
 
-    return drive
+
+def policy_driver(model: MaskablePPO) -> PolicyDriver:
+    """The model's most likely action under the mask."""
+    return PolicyDriver(model.policy)
+
+
+@dataclass
+class _Episode:
+    """One episode as driven and labelled: per step the observation, mask, expert's action, reward,
+    whether the episode ended there and whether the driver took the expert's action."""
+
+    obs: dict[str, np.ndarray]
+    masks: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    ends: np.ndarray
+    agreed: np.ndarray
+
+
+class _Labeller:
+    """Drives whole episodes of ``GCCPPlanner-v0`` and labels every step with the expert's action.
+
+    :param driver: who drives; None: the expert itself
+    """
+
+    def __init__(
+        self, world: IntersectionConfig, expert: str, expert_kwargs: Mapping[str, Any], driver: Driver | None
+    ) -> None:
+        self.env = GCCPPlannerEnv(world)
+        self.label = EXPERTS[expert](self.env.config, **expert_kwargs)
+        self.driver = driver
+
+    def episode(self, seed: int) -> _Episode:
+        """The episode of ``reset(seed=seed)``, to its end."""
+        obs, _ = self.env.reset(seed=seed)
+        steps: list[tuple[dict[str, np.ndarray], np.ndarray, int, float, bool, bool]] = []
+        done = False
+        while not done:
+            mask = self.env.action_masks()
+            action = self.label(obs, mask)
+            driven = action if self.driver is None else self.driver(obs, mask)
+            next_obs, reward, terminated, truncated, _ = self.env.step(driven)
+            done = terminated or truncated
+            steps.append((obs, mask, action, float(reward), done, driven == action))
+            obs = next_obs
+        return _Episode(
+            {key: np.stack([step[0][key] for step in steps]) for key in obs},
+            np.stack([step[1] for step in steps]),
+            np.array([step[2] for step in steps], np.int64),
+            np.array([step[3] for step in steps]),
+            np.array([step[4] for step in steps]),
+            np.array([step[5] for step in steps]),
+        )
+
+    def close(self) -> None:
+        self.env.close()
+
+
+_worker_labeller: _Labeller | None = None
+"""The labeller of a labelling process (made once per process by :func:`_start_worker`)."""
+
+
+def _start_worker(
+    world: IntersectionConfig,
+    expert: str,
+    expert_kwargs: Mapping[str, Any],
+    driver: Driver | None,
+    torch_threads: int,
+) -> None:
+    global _worker_labeller
+    th.set_num_threads(torch_threads)  # as the learner's process, so that the driver's floats are its own
+    _worker_labeller = _Labeller(world, expert, expert_kwargs, driver)
+
+
+def _worker_episode(seed: int) -> _Episode:
+    assert _worker_labeller is not None
+    return _worker_labeller.episode(seed)
+
+
+def _episodes(
+    world: IntersectionConfig,
+    seed: int,
+    expert: str,
+    expert_kwargs: Mapping[str, Any],
+    driver: Driver | None,
+    workers: int,
+) -> Iterator[_Episode]:
+    """The episodes seeded ``seed``, ``seed + 1``, ... in that order, driven in this process or, with
+    ``workers`` > 1, by that many processes, a few episodes ahead of the consumer."""
+    if workers == 1:
+        labeller = _Labeller(world, expert, expert_kwargs, driver)
+        try:
+            yield from (labeller.episode(seed + k) for k in itertools.count())
+        finally:
+            labeller.close()
+        return
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    initargs = (world, expert, dict(expert_kwargs), driver, th.get_num_threads())
+    with context.Pool(workers, _start_worker, initargs) as pool:
+        ahead = 2 * workers  # episodes asked for beyond the one awaited: no process waits for work
+        pending = deque(pool.apply_async(_worker_episode, (seed + k,)) for k in range(ahead))
+        for k in itertools.count(ahead):
+            yield pending.popleft().get()
+            pending.append(pool.apply_async(_worker_episode, (seed + k,)))
 
 
 def collect_expert(
@@ -221,49 +338,51 @@ def collect_expert(
     gamma: float = 0.99,
     out: ExpertData | None = None,
     expert_kwargs: Mapping[str, Any] | None = None,
+    workers: int = 1,
 ) -> ExpertData:
-    """Label ``steps`` steps of ``GCCPPlanner-v0`` (episodes seeded from ``seed`` on) with an expert
-    planner's actions.
+    """Label ``steps`` steps of ``GCCPPlanner-v0`` (episodes seeded from ``seed`` on, the last cut off
+    at ``steps``) with an expert planner's actions.
 
     :param expert: a key of ``EXPERTS``
-    :param driver: who drives (DAgger: the cloned policy); default the expert itself
+    :param driver: who drives (DAgger: the cloned policy, a :class:`PolicyDriver`); default the expert
     :param gamma: discount of the returns (the episode cut off by ``steps`` counts as ended there)
     :param out: where to write the steps (``steps`` rows, see :meth:`ExpertData.rows`); default new arrays
     :param expert_kwargs: keyword arguments of the expert's class beside the world config
+    :param workers: processes that drive the episodes (the driver must pickle); the data are the same
+        for any number
     :return: the states visited, with the expert's actions
     """
-    env = GCCPPlannerEnv(world)
-    label = EXPERTS[expert](env.config, **(expert_kwargs or {}))
-    data = ExpertData.empty(env.observation_space, env.action_space, steps) if out is None else out
+    require_int("workers", workers)
+    data = out
+    if data is None:
+        space = GCCPPlannerEnv(world)
+        data = ExpertData.empty(space.observation_space, space.action_space, steps)
+        space.close()
     if len(data.actions) != steps:
         raise ValueError(f"out holds {len(data.actions)} steps, not {steps}")
-    rewards, ends = np.empty(steps), np.empty(steps, bool)
-    episode = agreed = 0
-    obs, _ = env.reset(seed=seed)
+    rewards, ends, agreed = np.empty(steps), np.empty(steps, bool), np.empty(steps, bool)
+    filled = 0
+    episodes = _episodes(world, seed, expert, expert_kwargs or {}, driver, workers)
     with new_bar(
         total=steps, enabled=progress, desc="expert steps" if driver is None else "DAgger steps"
     ) as bar:
-        for step in range(steps):
-            mask = env.action_masks()
-            action = label(obs, mask)
-            for key, value in obs.items():
-                data.obs[key][step] = value
-            data.masks[step], data.actions[step] = mask, action
-            if driver is not None:
-                driven = driver(obs, mask)
-                agreed += driven == action
-                action = driven
-            else:
-                agreed += 1
-            obs, reward, terminated, truncated, _ = env.step(action)
-            rewards[step], ends[step] = reward, terminated or truncated
-            if terminated or truncated:
-                episode += 1
-                obs, _ = env.reset(seed=seed + episode)
-            bar.update()
-    env.close()
+        try:
+            for episode in episodes:
+                rows = slice(filled, min(steps, filled + len(episode.actions)))
+                taken = rows.stop - rows.start
+                for key, value in episode.obs.items():
+                    data.obs[key][rows] = value[:taken]
+                data.masks[rows], data.actions[rows] = episode.masks[:taken], episode.actions[:taken]
+                rewards[rows], ends[rows] = episode.rewards[:taken], episode.ends[:taken]
+                agreed[rows] = episode.agreed[:taken]
+                filled = rows.stop
+                bar.update(taken)
+                if filled == steps:
+                    break
+        finally:
+            episodes.close()  # type: ignore[attr-defined]
     data.returns[:] = discounted_returns(rewards, ends, gamma)
-    return replace(data, episodes=episode, agreement=agreed / steps)
+    return replace(data, episodes=int(ends.sum()), agreement=float(agreed.mean()))
 
 
 def discounted_returns(rewards: np.ndarray, ends: np.ndarray, gamma: float) -> np.ndarray:
@@ -411,6 +530,7 @@ def imitate(
         gamma=gamma,
         out=room.rows(0, filled),
         expert_kwargs=settings.expert_kwargs,
+        workers=settings.workers,
     )
     record: dict[str, Any] = {
         "settings": settings.to_dict(),
@@ -430,6 +550,7 @@ def imitate(
             gamma=gamma,
             out=room.rows(filled, filled + settings.dagger_steps),
             expert_kwargs=settings.expert_kwargs,
+            workers=settings.workers,
         )
         filled += settings.dagger_steps
         data = replace(
