@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-from helpers import TINY_PLANNER_HYPERPARAMS, run_cli
+from helpers import TINY_ENCODER, TINY_PLANNER_HYPERPARAMS, run_cli
 from sb3_contrib import MaskablePPO
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
+from sb3_gccp.policies import MotionPlannerPolicy
 from sb3_gccp.training.imitation import (
     BehaviourCloningCallback,
     ExpertData,
@@ -27,6 +28,7 @@ from sb3_gccp.training.imitation import (
 )
 
 WORLD = IntersectionConfig(spawn_probability=0.0, warmup_time=0.0, duration=4.0)
+TINY_POLICY = {"encoder": TINY_ENCODER, "net_arch": {"pi": [8], "vf": [8]}}
 
 
 def test_expert_data_are_the_scripted_planners_actions_under_the_envs_masks():
@@ -225,9 +227,12 @@ def test_dagger_data_are_the_drivers_states_with_the_experts_actions():
 
 def test_two_labelling_processes_give_the_same_data_as_one():
     env = gym.make("GCCPPlanner-v0", config=WORLD)
-    model = MaskablePPO("MultiInputPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0)
+    model = MaskablePPO(MotionPlannerPolicy, env, policy_kwargs=TINY_POLICY, seed=0)
+    settings = ImitationSettings(epochs=1, batch_size=16)
+    clone(model, collect_expert(WORLD, 16, seed=0), settings, seed=0)  # as DAgger's driver after a fit
     driver = policy_driver(model)  # the DAgger case: the policy must reach the processes too
-    one, two = (collect_expert(WORLD, 90, seed=7, driver=driver, workers=n) for n in (1, 2))
+    # two processes first: right after a fit, as in the planner stage, before any drive in this process
+    two, one = (collect_expert(WORLD, 90, seed=7, driver=driver, workers=n) for n in (2, 1))
     assert one.episodes == two.episodes >= 2  # 4 s episodes: the processes share them
     for key, value in one.obs.items():
         np.testing.assert_array_equal(two.obs[key], value)

@@ -217,9 +217,26 @@ class PolicyDriver:
     def __init__(self, policy: MaskableActorCriticPolicy) -> None:
         self.policy = policy
 
+    def __getstate__(self) -> dict[str, Any]:
+        # The class, its constructor's arguments and the weights, as SB3's ``policy.save`` keeps them: a
+        # policy that has just been fitted holds its last distribution, whose tensors do not pickle.
+        kwargs = self.policy._get_constructor_parameters()
+        kwargs["lr_schedule"] = _no_learning  # the schedule of the training run may not pickle; unused here
+        return {"class": type(self.policy), "kwargs": kwargs, "weights": self.policy.state_dict()}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.policy = state["class"](**state["kwargs"])
+        self.policy.load_state_dict(state["weights"])
+        self.policy.set_training_mode(False)
+
     def __call__(self, obs: dict[str, np.ndarray], mask: np.ndarray) -> int:
         action, _ = self.policy.predict(obs, action_masks=mask, deterministic=True)
         return int(action)
+
+
+def _no_learning(progress_remaining: float) -> float:
+    """The learning rate of a policy that only drives."""
+    return 0.0
 
 
 def policy_driver(model: MaskablePPO) -> PolicyDriver:
