@@ -107,3 +107,13 @@ def cli_error(cli: Callable[..., CompletedProcess[str]]) -> Callable[..., list[s
         return result.stderr.strip().splitlines()
 
     return run
+
+
+FIRST = ("test_reproduce.py", "test_decider_stage.py", "test_planner_stage.py", "test_predictor_stage.py")
+"""Modules whose tests run whole training stages: they are collected first, so that on two workers none of
+them is left to run alone at the end of the session."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Move the tests of :data:`FIRST` to the front, each module's tests in their order."""
+    items.sort(key=lambda item: item.path.name not in FIRST)
