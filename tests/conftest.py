@@ -111,7 +111,7 @@ def cli_error(cli: Callable[..., CompletedProcess[str]]) -> Callable[..., list[s
 
 FIRST = ("test_reproduce.py", "test_decider_stage.py", "test_planner_stage.py", "test_predictor_stage.py")
 """Modules whose tests run whole training stages: they are collected first, so that on two workers none of
-them is left to run alone at the end of the session."""
+them is left to run alone at the end of the test run."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

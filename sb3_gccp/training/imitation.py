@@ -205,6 +205,7 @@ def _mean_agreement(first: ExpertData, second: ExpertData) -> float:
 
 
 Driver = Callable[[dict[str, np.ndarray], np.ndarray], int]
+"""A planner as a function of (observation, action mask) to an action."""
 
 
 class PolicyDriver:
