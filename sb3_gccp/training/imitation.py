@@ -22,7 +22,7 @@ from __future__ import annotations
 import itertools
 import multiprocessing
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -325,7 +325,7 @@ def _episodes(
     expert_kwargs: Mapping[str, Any],
     driver: Driver | None,
     workers: int,
-) -> Iterator[_Episode]:
+) -> Generator[_Episode, None, None]:
     """The episodes seeded ``seed``, ``seed + 1``, ... in that order, driven in this process or, with
     ``workers`` > 1, by that many processes, a few episodes ahead of the consumer."""
     if workers == 1:
@@ -398,7 +398,7 @@ def collect_expert(
                 if filled == steps:
                     break
         finally:
-            episodes.close()  # type: ignore[attr-defined]
+            episodes.close()  # stops the labelling processes
     data.returns[:] = discounted_returns(rewards, ends, gamma)
     return replace(data, episodes=int(ends.sum()), agreement=float(agreed.mean()))
 
