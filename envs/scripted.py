@@ -77,7 +77,7 @@ HOLD_SPEED_COST = 0.2
 CRAWL_SPEED = 1.0
 """Below this speed [m/s], with the goal out of reach, the search planner speeds up ('keep direction')."""
 ROLLOUT_CACHE_SIZE = 128
-"""Rollouts the search planner keeps, by speed, the least recently used dropped first (about 3.8 MB
+"""Rollouts the search planner keeps, by speed, the least recently used dropped first (about 4.1 MB
 each). Speeds recur: a turn holds its speed, and from a standstill or at cruise speed the ego passes the
 same ones; over 20,000 expert steps 128 of them missed as rarely as 512 kept first in, first out."""
 BOX_HALF_LENGTH = 2.5
@@ -165,7 +165,8 @@ class SearchPlanner:
         return self._cached(speed)[0]
 
     def _cached(self, speed: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The rollout at ``speed`` with its corners' BEV pixels (:meth:`corner_pixels`)."""
+        """The rollout at ``speed``, its corners' flat BEV pixels (:meth:`corner_pixels`; those outside
+        the view index the pixel after its last) and the speed after each step, (S, horizon)."""
         key = round(float(speed), 6)
         cached = self._rollouts.get(key)
         if cached is not None:
@@ -174,7 +175,12 @@ class SearchPlanner:
         if len(self._rollouts) >= ROLLOUT_CACHE_SIZE:
             self._rollouts.popitem(last=False)
         poses = self._rollout(key)
-        cached = self._rollouts[key] = (poses, *self.corner_pixels(poses, self.config.bev_size))
+        pixels, inside = self.corner_pixels(poses, self.config.bev_size)
+        # A corner outside the view reads one pixel past the end of the view, which counts as road.
+        pixels = np.where(inside, pixels, self.config.bev_size**2)
+        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
+        speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
+        cached = self._rollouts[key] = (poses, pixels, speed_after)
         return cached
 
     def _rollout(self, speed: float) -> np.ndarray:
@@ -193,11 +199,19 @@ class SearchPlanner:
         :param poses: (..., 3) ego-frame poses
         :param bev: (S, S) drivable area, ego at the centre, forward up (the observation's ``bev[0]``)
         """
-        return self._on_road(*self.corner_pixels(poses, bev.shape[0]), bev)
+        pixels, inside = self.corner_pixels(poses, bev.shape[0])
+        return self._on_road(np.where(inside, pixels, bev.size), bev)
 
     @staticmethod
-    def _on_road(pixels: np.ndarray, inside: np.ndarray, bev: np.ndarray) -> np.ndarray:
-        return (~inside | (bev.ravel()[pixels] > 0)).all(-1)
+    def _on_road(pixels: np.ndarray, bev: np.ndarray) -> np.ndarray:
+        """Whether all four corners are on the road, (...); ``pixels`` (..., 4) index the flat view, and
+        the index one past its end stands for a corner outside it (on the road)."""
+        road = np.empty(bev.size + 1, np.uint8)
+        np.greater(bev.ravel(), 0, out=road[:-1])
+        road[-1] = 1
+        corners = np.ascontiguousarray(road[pixels])
+        # The four 0/1 bytes of a pose read as one 32-bit word: all four on the road is 0x01010101.
+        return corners.view(np.uint32)[..., 0] == 0x01010101
 
     def corner_pixels(self, poses: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
         """Flat BEV pixel index of each corner of the ego's box (shrunk by half a pixel) at each pose,
@@ -226,28 +240,24 @@ class SearchPlanner:
         stop = (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading)
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
-        poses, pixels, inside = self._cached(speed)
+        poses, pixels, speed_after = self._cached(speed)
         on_road = np.ones(poses.shape[:2], bool)
         if "bev" in obs:
             bev = obs["bev"][0]
-            on_road = (
-                self.on_road(poses, bev)
-                if bev.shape[0] != self.config.bev_size
-                else self._on_road(pixels, inside, bev)
-            )
+            own_size = bev.shape[0] == self.config.bev_size
+            on_road = self._on_road(pixels, bev) if own_size else self.on_road(poses, bev)
         if stop:
-            return self._slowest_on_road(poses, np.all(on_road, axis=1), obs["goal"], allowed)
+            end_speed = speed_after[:, -1]
+            return self._slowest_on_road(poses, end_speed, np.all(on_road, axis=1), obs["goal"], allowed)
         miss = np.hypot(poses[..., 0] - gx, poses[..., 1] - gy)
         turn = np.abs((poses[..., 2] - gh + np.pi) % (2.0 * np.pi) - np.pi)
         # Only what is driven before the first step off the road counts.
-        before_off = np.cumprod(on_road, axis=1).astype(bool)
+        before_off = np.logical_and.accumulate(on_road, axis=1)
         hit = (miss <= self.radius) & (turn <= self.heading) & before_off
         # Where no sequence arrives with the margin, one that arrives within the env's own tolerance
         # (short lane changes, mostly) still beats ending on the goal's line.
         first = self.sequences[:, 0]
         usable = allowed[first] | ~allowed.any()
-        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
-        speed_after = np.hypot(steps[..., 0], steps[..., 1]) / DT
         limited = self.max_lateral_acceleration is not None
         if limited and abs(float(wrap_angle(gh))) >= self.limit_from_goal_heading:
             gentle = usable & self._gentle(speed_after)
@@ -280,13 +290,16 @@ class SearchPlanner:
         return np.all(speed_after**2 * self._turn_curvature <= self.max_lateral_acceleration, axis=1)
 
     def _slowest_on_road(
-        self, poses: np.ndarray, on_road: np.ndarray, goal: np.ndarray, allowed: np.ndarray
+        self,
+        poses: np.ndarray,
+        end_speed: np.ndarray,
+        on_road: np.ndarray,
+        goal: np.ndarray,
+        allowed: np.ndarray,
     ) -> int:
         """First action of the sequence that stays on the road (``on_road`` per sequence) and ends
-        slowest (a turn where braking straight would leave the road, then braking), the nearer to the
-        goal between equally slow ones."""
-        steps = np.diff(poses[..., :2], axis=1, prepend=0.0)
-        end_speed = np.hypot(steps[:, -1, 0], steps[:, -1, 1]) / DT
+        slowest (``end_speed``; a turn where braking straight would leave the road, then braking), the
+        nearer to the goal between equally slow ones."""
         miss = np.hypot(poses[:, -1, 0] - goal[0], poses[:, -1, 1] - goal[1])
         first = self.sequences[:, 0]
         usable = (allowed[first] | ~allowed.any()) & on_road

@@ -187,6 +187,36 @@ def test_search_planner_keeps_its_recently_used_rollouts_up_to_the_cache_size():
     assert 1.0 not in planner._rollouts and newest in planner._rollouts
 
 
+def test_search_planner_on_road_needs_all_four_corners_on_the_road_or_beyond_the_view():
+    config = IntersectionConfig()
+    size, reach = config.bev_size, config.bev_extent / 2.0
+    behind = np.zeros((size, size), np.float32)
+    behind[size // 2 :] = 1.0  # the road is the half of the view behind the ego (forward is up)
+    poses = np.array(
+        [
+            [-10.0, 0.0, 0.0],  # behind: on the road
+            [10.0, 0.0, 0.0],  # ahead: off it
+            [0.0, 0.0, 0.0],  # the front corners ahead, the rear ones behind: off it
+            [-4.0, 0.0, np.pi / 2],  # across, all four corners behind
+            [reach + 10.0, 0.0, 0.0],  # beyond the view: counts as on the road
+            [-reach - 10.0, reach + 10.0, 1.0],
+        ]
+    )
+    np.testing.assert_array_equal(SEARCH.on_road(poses, behind), [True, False, False, True, True, True])
+    np.testing.assert_array_equal(SEARCH.on_road(poses, np.ones((size, size))), [True] * 6)
+    np.testing.assert_array_equal(SEARCH.on_road(poses, np.zeros((size, size))), [False] * 4 + [True] * 2)
+
+
+def test_search_planner_reads_the_road_from_its_cached_rollout_as_from_the_poses():
+    rng = np.random.default_rng(0)
+    bev = (rng.random((IntersectionConfig().bev_size,) * 2) < 0.97).astype(np.float32)
+    planner = SearchPlanner(IntersectionConfig())
+    poses, pixels, _ = planner._cached(6.0)
+    cached = planner._on_road(pixels, bev)
+    np.testing.assert_array_equal(cached, planner.on_road(poses, bev))
+    assert 0 < cached.mean() < 1
+
+
 @pytest.mark.parametrize(
     ("goal", "speed", "action"),
     [
