@@ -281,11 +281,14 @@ class IntersectionWorld:
         next_step = self._on_road(poses)
         later = self.config.mask_lookahead - 1
         mask = next_step.copy()
-        if later > 0:
-            for action in np.flatnonzero(next_step):
-                mask[action] = any(
-                    self._on_road(motion.rollout(next_states[action], hold, later)).all() for hold in range(n)
-                )
+        passed = np.flatnonzero(next_step)
+        if later > 0 and len(passed):
+            # Every passing action followed by every action held: (passed, held, later) poses at once.
+            starts = np.repeat([next_states[action].as_array() for action in passed], n, axis=0)
+            held = np.tile(np.arange(n), len(passed))
+            poses_later = motion.rollout_many(starts, held, later).reshape(-1, 3)
+            kept = self._on_road(poses_later).reshape(len(passed), n, later)
+            mask[passed] = kept.all(axis=-1).any(axis=-1)
         if not mask.any():
             mask = next_step if next_step.any() else np.ones_like(next_step)
         if self.config.mask_drive_on:

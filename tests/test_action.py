@@ -216,6 +216,24 @@ def test_two_arc_paths_are_the_poses_of_two_held_actions(motion):
     assert len(paths) == len(curvatures) + len(curvatures) * (len(curvatures) - 1) * 9
 
 
+@pytest.mark.parametrize("motion", [MOTION, REAR], ids=["centre", "rear axle"])
+def test_rollout_many_is_rollout_to_the_last_bit(motion):
+    # The road-keeping mask rolls out every held action at once; the planner stage's data depend on
+    # its booleans, so the poses must be those of the one-state loop, not merely close to them.
+    rng = np.random.default_rng(0)
+    states = np.column_stack(
+        (rng.uniform(-30.0, 30.0, (120, 2)), rng.uniform(-4.0, 4.0, 120), rng.uniform(0.0, 8.0, 120))
+    )
+    states[:20, 3] = 0.0  # standing
+    states[20:40, 3] = CFG.cruise_speed
+    actions = np.arange(120) % len(motion.curvature)
+    many = motion.rollout_many(states, actions, 9)
+    one = np.stack(
+        [motion.rollout(EgoState(*state), int(a), 9) for state, a in zip(states, actions, strict=True)]
+    )
+    np.testing.assert_array_equal(many, one)
+
+
 def test_step_many_moves_along_the_chord_of_the_middle_heading_to_the_last_bit():
     # The search planner's rollouts, and so the planner stage's expert data, depend on the exact floats:
     # the rotated form x + cos(h) dx - sin(h) dy, equal in exact arithmetic, gave another planner.
