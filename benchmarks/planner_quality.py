@@ -179,7 +179,7 @@ def stopping(
     )
     stopped = 0
     for task in TASKS:
-        for k in range(episodes):
+        for k in tqdm(range(episodes), desc=f"stops {task}", leave=False):
             obs, _ = env.reset(seed=seed + k, options={"task": task})
             for _ in range(steps):
                 obs, _, terminated, truncated, _ = env.step(planner(obs, env.action_masks()))
@@ -208,8 +208,9 @@ def restarting(
     farthest = FarthestSubgoalDecider()
     rng = np.random.default_rng(seed)
     stops = moved = completed = not_stopped = timed_out = crashed = 0
+    label = "restarts in traffic" if traffic else "restarts"
     for task in TASKS:
-        for k in range(episodes):
+        for k in tqdm(range(episodes), desc=f"{label} {task}", leave=False):
             obs, _ = env.reset(seed=seed + k, options={"task": task})
             ended, world = False, env.world
             for _ in range(int(rng.integers(5))):
