@@ -141,7 +141,7 @@ class EgoMotion:
 
     def rollout_many(self, states: FloatArray, actions: np.ndarray, steps: int) -> FloatArray:
         """:meth:`rollout` for many states at once, the same to the last bit: the same operations in the
-        same order, on arrays (only :meth:`step_many`'s chord form differs).
+        same order, on arrays (:meth:`step_many`'s chord form gives other last bits).
 
         :param states: (n, 4) x, y, heading, speed
         :param actions: (n,) the action each state holds
