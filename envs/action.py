@@ -139,6 +139,14 @@ class EgoMotion:
             poses[k] = (state.x, state.y, state.heading)
         return poses
 
+    def _next_speeds(self, speeds: FloatArray, braking: np.ndarray, keeping: np.ndarray) -> FloatArray:
+        """:meth:`next_speed` for many speeds at once: ``braking`` and ``keeping`` mark 'slow down' and
+        'keep direction'; the turns hold their speed."""
+        cfg = self.config
+        braked = np.maximum(speeds - cfg.deceleration * DT, 0.0)
+        kept = np.maximum(np.minimum(speeds + cfg.acceleration * DT, cfg.cruise_speed), braked)
+        return np.where(braking, braked, np.where(keeping, kept, speeds))
+
     def rollout_many(self, states: FloatArray, actions: np.ndarray, steps: int) -> FloatArray:
         """:meth:`rollout` for many states at once, the same to the last bit: the same operations in the
         same order, on arrays (:meth:`step_many`'s chord form gives other last bits).
@@ -148,18 +156,13 @@ class EgoMotion:
         :param steps: steps of each rollout
         :return: world poses (x, y, heading), (n, steps, 3)
         """
-        cfg = self.config
         x, y, heading, speed = (np.array(states[:, k], dtype=float) for k in range(4))
         actions = np.asarray(actions)
         curvature = self.curvature[actions]
         braking, keeping = actions == EgoAction.SLOW_DOWN, actions == EgoAction.KEEP_DIRECTION
         poses = np.empty((len(states), steps, 3))
         for k in range(steps):
-            braked = np.maximum(speed - cfg.deceleration * DT, 0.0)
-            kept = np.maximum(
-                np.minimum(speed + cfg.acceleration * DT, cfg.cruise_speed), speed - cfg.deceleration * DT
-            )
-            new_speed = np.where(braking, braked, np.where(keeping, kept, speed))
+            new_speed = self._next_speeds(speed, braking, keeping)
             distance = 0.5 * (speed + new_speed) * DT
             turn = curvature * distance
             dx, dy = self._shift(distance, turn)
@@ -174,13 +177,8 @@ class EgoMotion:
     ) -> tuple[FloatArray, FloatArray]:
         """:meth:`step` for many states at once: poses (n, 3) (x, y, heading; the heading is not
         wrapped), speeds (n,) and one action each (n,); returns the new poses and speeds."""
-        cfg = self.config
-        braked = np.maximum(speeds - cfg.deceleration * DT, 0.0)
-        kept = np.maximum(np.minimum(speeds + cfg.acceleration * DT, cfg.cruise_speed), braked)
-        new_speeds = np.where(
-            actions == EgoAction.SLOW_DOWN,
-            braked,
-            np.where(actions == EgoAction.KEEP_DIRECTION, kept, speeds),
+        new_speeds = self._next_speeds(
+            speeds, actions == EgoAction.SLOW_DOWN, actions == EgoAction.KEEP_DIRECTION
         )
         distance = 0.5 * (speeds + new_speeds) * DT
         turn = self.curvature[actions] * distance
