@@ -159,6 +159,9 @@ TINY_REPRODUCE = [
     "world.duration=2.0",
     "hyperparams.planner.n_steps=16",
     "hyperparams.planner.batch_size=16",
+    "hyperparams.planner.imitation.expert_steps=32",
+    "hyperparams.planner.imitation.dagger_steps=16",
+    "hyperparams.planner.imitation.workers=1",
     "hyperparams.hierarchy.n_steps=4",
     "hyperparams.hierarchy.batch_size=4",
     "hyperparams.ppo.n_steps=8",
@@ -170,7 +173,8 @@ TINY_REPRODUCE = [
     "hyperparams.sac_discrete.buffer_size=100",
     "hyperparams.sac_discrete.batch_size=8",
 ]
-"""The quick preset shrunk to seconds: 2 episodes of 2 s per method, a 32-step planner, tiny networks."""
+"""The quick preset shrunk to seconds: 2 episodes of 2 s per method, a planner cloned from 48 labelled
+steps in one process and trained for 32 PPO steps, tiny networks."""
 
 
 def reproduce(cwd: Path, *extra: str) -> subprocess.CompletedProcess[str]:
