@@ -49,7 +49,7 @@ def tiny_planner(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner, cli):
+def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_path, tiny_planner, cli):
     config = tmp_path / "tiny.yml"
     config.write_text(yaml.safe_dump(TINY_DECIDER))
     args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", "runs")
@@ -75,6 +75,22 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner, cli)
     hierarchy = yaml.safe_load((run / "hierarchy.yml").read_text())
     assert hierarchy["predictor"] == "learned" and hierarchy["world"]["duration"] == 2.0
     assert hierarchy["mask_margin"] == 0.0 and hierarchy["mask_extrapolate_steps"] == 0
+
+    # The same seed trains the same decider and predictor: the predictor starts from the run's seed,
+    # and its updates run beside the env workers' steps in the order the episodes ended.
+    again = run_cli(*args[:-1], "again", "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    (rerun,) = (tmp_path / "again" / "decider").iterdir()
+    first, second = (
+        th.load(folder / "predictor.pt", weights_only=True)["state_dict"] for folder in (run, rerun)
+    )
+    assert first.keys() == second.keys()
+    for key in first:
+        assert th.equal(first[key], second[key]), key
+    first_rows, second_rows = (read_episodes(folder / "episodes.csv") for folder in (run, rerun))
+    for row in first_rows + second_rows:
+        assert row.pop("wall_clock_s") > 0  # the one column that may differ
+    assert first_rows == second_rows
 
     # The same seed gives the same table; a decider .zip inside the run folder works as well.
     evaluate = ("evaluate", "--episodes-per-task", "1", "--tasks", "left,right", "--seed", "5")
@@ -104,26 +120,6 @@ def test_decider_stage_trains_evaluates_and_resumes(tmp_path, tiny_planner, cli)
     newest = max((run / "checkpoints").glob("*/complete.json"), key=lambda p: p.stat().st_mtime).parent
     state = th.load(newest / "gccp_state.pt", weights_only=True)
     assert (state["episodes"], state["gradient_steps"]) == (5, 25)  # K_p = 5 steps per episode
-
-
-def test_the_same_seed_trains_the_same_decider_and_predictor(tmp_path, tiny_planner):
-    config = tmp_path / "tiny.yml"
-    config.write_text(yaml.safe_dump(TINY_DECIDER))
-    runs = []
-    for folder in ("a", "b"):
-        args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", folder, "--seed", "3")
-        result = run_cli(*args, "--planner", str(tiny_planner), cwd=tmp_path)
-        assert result.returncode == 0, result.stderr
-        (run,) = (tmp_path / folder / "decider").iterdir()
-        runs.append(run)
-    first, second = (th.load(run / "predictor.pt", weights_only=True)["state_dict"] for run in runs)
-    assert first.keys() == second.keys()
-    for key in first:  # the predictor starts from the run's seed, and so trains the same
-        assert th.equal(first[key], second[key]), key
-    first_rows, second_rows = (read_episodes(run / "episodes.csv") for run in runs)
-    for row in first_rows + second_rows:
-        assert row.pop("wall_clock_s") > 0  # the one column that may differ
-    assert first_rows == second_rows
 
 
 @pytest.mark.parametrize(

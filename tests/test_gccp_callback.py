@@ -9,7 +9,7 @@ from sb3_contrib import MaskablePPO
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from gccp_envs.option_env import GCCPDeciderEnv
-from sb3_gccp.gccp.callback import GCCPCallback
+from sb3_gccp.gccp.callback import GCCPCallback, StepOverlap
 from sb3_gccp.gccp.mask import GCCPMask
 from sb3_gccp.gccp.predictor import (
     PredictorConfig,
@@ -68,6 +68,47 @@ def test_callback_fills_the_buffer_trains_the_predictor_and_switches_masks_on_at
         # Pushed after a rollout past N_m: trained weights, not the initial ones.
         pushed = list(mask_fn.predictor.parameters())
         assert any(not th.equal(a, b) for a, b in zip(before, pushed, strict=True))
+
+
+def trained_callback(overlap: bool) -> GCCPCallback:
+    env = decider_vec_env()
+    th.manual_seed(0)
+    settings = GCCPSettings(n_episodes=6, mask_after_episodes=3, predictor_kwargs=TINY_PREDICTOR)
+    callback = GCCPCallback(settings, tiny_predictor(), EpisodeReplayBuffer(100))
+    tiny_model(StepOverlap(env, callback.run_next) if overlap else env).learn(1000, callback=callback)
+    return callback
+
+
+def test_predictor_updates_overlapped_with_the_steps_give_the_same_run():
+    plain, overlapped = trained_callback(overlap=False), trained_callback(overlap=True)
+    assert overlapped.trainer is not None and overlapped.trainer.gradient_steps == 5 * 6
+    for a, b in zip(plain.predictor.parameters(), overlapped.predictor.parameters(), strict=True):
+        assert th.equal(a, b)
+    assert [row["success"] for row in plain.history] == [row["success"] for row in overlapped.history]
+    assert np.array_equal(plain.buffer.stored()["future"], overlapped.buffer.stored()["future"])
+
+
+class RecordingVecEnv(DummyVecEnv):
+    def __init__(self, log: list[str]) -> None:
+        super().__init__([lambda: GCCPDeciderEnv(duration=2.0)])
+        self.log = log
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self.log.append("send")
+        super().step_async(actions)
+
+    def step_wait(self):  # type: ignore[no-untyped-def]
+        self.log.append("collect")
+        return super().step_wait()
+
+
+def test_step_overlap_runs_the_work_after_sending_the_actions_and_before_collecting():
+    log: list[str] = []
+    env = StepOverlap(RecordingVecEnv(log), lambda: log.append("work"))
+    env.reset()
+    env.step(np.array([0]))
+    env.step(np.array([0]))
+    assert log == ["send", "work", "collect"] * 2
 
 
 def test_without_gccp_nothing_is_masked_or_stored():

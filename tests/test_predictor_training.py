@@ -104,15 +104,18 @@ def test_predictor_overfits_a_tiny_buffer(buffer):
     assert last < 0.1 * first, (first, last)
 
 
-def test_on_episode_end_takes_k_p_steps(buffer):
-    predictor = tiny_predictor()
-    trainer = PredictorTrainer(predictor, steps_per_episode=3, batch_size=8)
-    before = [p.detach().clone() for p in predictor.parameters()]
-    assert np.isnan(trainer.on_episode_end(EpisodeReplayBuffer(), np.random.default_rng(0)))
-    assert trainer.gradient_steps == 0
-    assert np.isfinite(trainer.on_episode_end(buffer, np.random.default_rng(0)))
-    assert trainer.gradient_steps == 3
-    assert any(not th.equal(a, b) for a, b in zip(before, predictor.parameters(), strict=True))
+def test_steps_taken_one_at_a_time_train_as_steps_taken_together(buffer):
+    # The GCCP callback spreads an episode's K_p steps over the next env steps.
+    together, apart = (PredictorTrainer(tiny_predictor(), batch_size=8) for _ in range(2))
+    apart.predictor.load_state_dict(together.predictor.state_dict())
+    before = [p.detach().clone() for p in together.predictor.parameters()]
+    loss = together.train_steps(buffer, 3, np.random.default_rng(0))
+    rng = np.random.default_rng(0)
+    losses = [apart.train_steps(buffer, 1, rng) for _ in range(3)]
+    assert loss == np.mean(losses) and together.gradient_steps == apart.gradient_steps == 3
+    for a, b, c in zip(together.predictor.parameters(), apart.predictor.parameters(), before, strict=True):
+        assert th.equal(a, b) and not th.equal(a, c)
+    assert np.isnan(together.train_steps(buffer, 0, rng))
 
 
 def test_displacement_errors_measure_position_errors(buffer):

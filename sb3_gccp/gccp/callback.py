@@ -6,7 +6,10 @@ Algorithm 1 of the paper, as an SB3 callback on MaskablePPO over ``GCCPDecider-v
   the env puts in ``info`` (``decision_obs``, ``subgoal``, ``future``, ``future_mask``), so that a
   ``VecNormalize`` wrapper would not matter;
 - at an episode's end D_e moves into the replay buffer D and the predictor takes K_p gradient steps
-  on batches of N_b decisions;
+  on batches of N_b decisions. These wait in a queue, in the order the episodes ended; with the envs
+  wrapped in :class:`StepOverlap` one of them runs while the env workers take each step, the rest at
+  the rollout's end. The workers see the predictor's weights only when they are pushed, and the queue
+  is emptied before that, so a run's results are the same with the wrapper or without;
 - from episode N_m on, every env worker masks subgoals with the GCCP module: the callback sends each
   worker a :class:`~sb3_gccp.gccp.mask.GCCPMask` with a copy of the predictor through
   ``VecEnv.env_method("set_mask_fn", ...)`` (``set_attr`` would set the Monitor wrapper), again after
@@ -24,7 +27,8 @@ from __future__ import annotations
 
 import copy
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +36,8 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 from torch import nn
 from tqdm.auto import tqdm
 
@@ -49,6 +55,33 @@ STATE_FILE = "gccp_state.pt"
 """The callback's counters and the predictor's optimiser, in a checkpoint folder."""
 BUFFER_FILE = "buffer.npz"
 """The replay buffer D, in a checkpoint folder."""
+
+
+class StepOverlap(VecEnvWrapper):
+    """Runs some of the learner's waiting work while the env workers step.
+
+    ``step_async`` sends the actions to the workers, then calls ``work`` (the GCCP callback's
+    :meth:`GCCPCallback.run_next`: one predictor gradient step), then ``step_wait`` collects the
+    workers' results: with a ``SubprocVecEnv`` the predictor's training and the envs' steps share the
+    cores instead of taking turns. With a ``DummyVecEnv`` the work simply runs before the step.
+
+    :param venv: the training envs
+    :param work: called once per step, between sending the actions and collecting the results
+    """
+
+    def __init__(self, venv: VecEnv, work: Callable[[], None]) -> None:
+        super().__init__(venv)
+        self.work = work
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self.venv.step_async(actions)
+        self.work()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        return self.venv.step_wait()
+
+    def reset(self) -> Any:
+        return self.venv.reset()
 
 
 class GCCPCallback(BaseCallback):
@@ -98,6 +131,7 @@ class GCCPCallback(BaseCallback):
         self.run_dir = run_dir
         self._checkpointed_at = 0
         self._staged: list[list[tuple[Any, ...]]] = []
+        self._waiting: deque[Callable[[], None]] = deque()
         self._losses: list[float] = []
         self._masked: list[float] = []
         self._recent: deque[dict[str, Any]] = deque(maxlen=100)
@@ -133,6 +167,7 @@ class GCCPCallback(BaseCallback):
         return True
 
     def _on_rollout_end(self) -> None:
+        self.run_waiting()
         if self.masks_on and self.trainer is not None:
             self.push_masks()
         log = self.logger.record
@@ -152,17 +187,16 @@ class GCCPCallback(BaseCallback):
         self._losses, self._masked = [], []
 
     def _on_training_end(self) -> None:
+        self.run_waiting()
         if self._bar is not None:
             self._bar.close()
 
     # --- the algorithm -------------------------------------------------------------------------
     def _end_episode(self, env_index: int, info: Mapping[str, Any]) -> None:
         if self.trainer is not None:
-            for decision in self._staged[env_index]:
-                self.buffer.add(*decision)
-            self._staged[env_index] = []
-            self.buffer.end_episode()
-            self._losses.append(self.trainer.on_episode_end(self.buffer, self.rng))
+            decisions, self._staged[env_index] = self._staged[env_index], []
+            self._waiting.append(partial(self._store_episode, decisions))
+            self._waiting.extend([self._predictor_step] * self.trainer.steps_per_episode)
         self.episodes += 1
         row = episode_row(info, self.episodes, self.num_timesteps, self.masks_on, self._clock())
         self.history.append(row)
@@ -180,9 +214,34 @@ class GCCPCallback(BaseCallback):
             self.masks_on = True
             self.push_masks()
 
+    def _store_episode(self, decisions: list[tuple[Any, ...]]) -> None:
+        """Move an episode's decisions D_e into the replay buffer D."""
+        for decision in decisions:
+            self.buffer.add(*decision)
+        self.buffer.end_episode()
+
+    def _predictor_step(self) -> None:
+        """One of Algorithm 1's K_p predictor steps after an episode."""
+        assert self.trainer is not None
+        self._losses.append(self.trainer.train_steps(self.buffer, 1, self.rng))
+
+    def run_next(self) -> None:
+        """Run the waiting updates up to and with the next predictor step."""
+        while self._waiting:
+            work = self._waiting.popleft()
+            work()
+            if work == self._predictor_step:
+                return
+
+    def run_waiting(self) -> None:
+        """Run every waiting update, in order: the replay buffer and the predictor are then up to date."""
+        while self._waiting:
+            self._waiting.popleft()()
+
     def push_masks(self) -> None:
         """Give every env worker a GCCP mask with a copy of the current predictor."""
         assert self.predictor is not None
+        self.run_waiting()
         predictor = copy.deepcopy(self.predictor).cpu().eval()
         self.training_env.env_method("set_mask_fn", self.settings.check.make_mask(predictor, self.world))
 
@@ -190,6 +249,7 @@ class GCCPCallback(BaseCallback):
     def checkpoint(self, model: BaseAlgorithm) -> Checkpoint:
         """Write a checkpoint of ``model`` and of the callback's state into the run folder."""
         assert self.run_dir is not None
+        self.run_waiting()
         state = {
             "episodes": self.episodes,
             "masks_on": self.masks_on,

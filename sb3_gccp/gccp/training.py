@@ -95,15 +95,6 @@ class PredictorTrainer:
         self.gradient_steps += n_steps
         return float(np.mean(losses)) if losses else float("nan")
 
-    def on_episode_end(self, buffer: EpisodeReplayBuffer, rng: np.random.Generator) -> float:
-        """Algorithm 1's predictor update: K_p gradient steps, if the replay buffer holds anything.
-
-        :param buffer: the replay buffer D
-        :param rng: draws the batches
-        :return: the mean loss (nan when the buffer is empty)
-        """
-        return self.train_steps(buffer, self.steps_per_episode, rng) if len(buffer) else float("nan")
-
 
 def displacement_errors(
     predictor: nn.Module,

@@ -46,7 +46,7 @@ from sb3_gccp.constants import (
     TRAINING_CURVE_FILE,
 )
 from sb3_gccp.frozen import load_frozen_planner, load_planner
-from sb3_gccp.gccp.callback import BUFFER_FILE, GCCPCallback
+from sb3_gccp.gccp.callback import BUFFER_FILE, GCCPCallback, StepOverlap
 from sb3_gccp.gccp.predictor import load_predictor
 from sb3_gccp.gccp.replay import EpisodeReplayBuffer
 from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
@@ -145,6 +145,7 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
             append=model is not None,
             subprocesses=True,
         )
+        env = StepOverlap(env, gccp_callback.run_next)
     try:  # the env's workers are closed whatever fails from here on
         with removed_if_setup_fails(run):
             if model is None:
