@@ -7,6 +7,7 @@ import torch as th
 from helpers import TINY_ENCODER
 from sb3_contrib import MaskablePPO
 from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from gccp_envs.option_env import GCCPDeciderEnv
 from sb3_gccp.gccp.callback import GCCPCallback, StepOverlap
@@ -97,7 +98,7 @@ class RecordingVecEnv(DummyVecEnv):
         self.log.append("send")
         super().step_async(actions)
 
-    def step_wait(self):  # type: ignore[no-untyped-def]
+    def step_wait(self) -> VecEnvStepReturn:
         self.log.append("collect")
         return super().step_wait()
 

@@ -236,7 +236,7 @@ class GCCPCallback(BaseCallback):
     def run_waiting(self) -> None:
         """Run every waiting update, in order: the replay buffer and the predictor are then up to date."""
         while self._waiting:
-            self._waiting.popleft()()
+            self.run_next()
 
     def push_masks(self) -> None:
         """Give every env worker a GCCP mask with a copy of the current predictor."""
