@@ -20,15 +20,17 @@ from collections.abc import Mapping
 from functools import partial
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from sb3_contrib.common.maskable.policies import MaskableActorCriticPolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from gccp_envs.option_env import VERDICT_KEY
 from sb3_gccp.networks import EncoderConfig, SceneEncoder
+from sb3_gccp.traced import LogitsAndValues, TraceCache, masked_log_probs, most_likely, sampled
 
 PLANNER_NET_ARCH = {"pi": [256, 256], "vf": [256, 256]}
 """Hidden layers of the planner's policy and value heads; with the output layer, 3-layer MLPs (paper)."""
@@ -101,6 +103,20 @@ class MotionPlannerPolicy(MaskableActorCriticPolicy):
             features_extractor_kwargs=features_extractor_kwargs,
             **kwargs,
         )
+        self._heads = TraceCache(LogitsAndValues(self))
+
+    def forward(
+        self, obs: PyTorchObs, deterministic: bool = False, action_masks: np.ndarray | None = None
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Actions, values and log-probabilities, as ``MaskableActorCriticPolicy.forward`` gives them to
+        the bit (the same random numbers drawn); without gradients (PPO's rollouts), from the network
+        traced (:mod:`sb3_gccp.traced`)."""
+        if th.is_grad_enabled() or not isinstance(obs, dict):
+            return super().forward(obs, deterministic, action_masks)  # type: ignore[arg-type]
+        logits, values = self._heads(obs)
+        log_probs = masked_log_probs(logits.view(-1, logits.shape[-1]), action_masks)
+        actions = most_likely(log_probs) if deterministic else sampled(log_probs)
+        return actions, values, log_probs.gather(-1, actions[:, None]).squeeze(-1)
 
 
 class DeciderFeaturesExtractor(BaseFeaturesExtractor):
@@ -269,7 +285,9 @@ class DecisionMakerPolicy(MaskableActorCriticPolicy):
         if self.ortho_init:
             self.action_net.apply(partial(self.init_weights, gain=0.01))
         self.optimizer = self.optimizer_class(
-            self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
+            self.parameters(),
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,  # type: ignore[call-arg]
         )
 
 

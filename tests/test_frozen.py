@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+from collections.abc import Callable
 from pathlib import Path
 
 import gymnasium as gym
@@ -27,6 +29,54 @@ def test_a_frozen_policy_acts_as_predict_does_and_leaves_torch_threads_alone():
         action, _ = model.predict(obs, action_masks=mask, deterministic=True)
         assert frozen(obs, mask) == int(action)
         obs, *_ = env.step(int(action))
+
+
+def test_the_traced_policies_take_predicts_actions_over_a_hierarchys_episodes():
+    """The planner and the decider traced, against ``predict`` on the same observations: with the
+    env's masks, without a mask, and with the most likely action masked out."""
+    from sb3_gccp.hierarchy import load_hierarchy
+
+    hierarchy = load_hierarchy(PLANNER.parent)
+    env = hierarchy.make_env()
+    decider = hierarchy.decider_policy(env.config)
+    planner = env.planner
+    references = {
+        id(frozen): MaskablePPO.load(path, device="cpu")
+        for frozen, path in ((planner, PLANNER), (decider, hierarchy.decider))
+    }
+    seen: list[tuple[FrozenPolicy, dict[str, np.ndarray], np.ndarray]] = []
+
+    def recorded(frozen: FrozenPolicy) -> Callable[[dict[str, np.ndarray], np.ndarray], int]:
+        def act(obs: dict[str, np.ndarray], mask: np.ndarray) -> int:
+            seen.append((frozen, {key: value.copy() for key, value in obs.items()}, np.array(mask)))
+            return frozen(obs, mask)
+
+        return act
+
+    env.planner = recorded(planner)
+    act = recorded(decider)
+    for seed in (3, 4):
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            obs, _, terminated, truncated, _ = env.step(act(obs, env.action_masks()))
+            done = terminated or truncated
+    assert (
+        sum(frozen is decider for frozen, _, _ in seen) > 5
+        and sum(frozen is planner for frozen, _, _ in seen) > 50
+    )
+    for frozen, obs, mask in seen:
+        model = references[id(frozen)]
+        for given in (mask, None):
+            action, _ = model.predict(obs, action_masks=given, deterministic=True)
+            assert frozen(obs, given) == int(action)
+        first, _ = model.predict(obs, deterministic=True)
+        without_first = np.ones_like(mask)
+        without_first[int(first)] = False
+        action, _ = model.predict(obs, action_masks=without_first, deterministic=True)
+        assert frozen(obs, without_first) == int(action) != int(first)
+    assert len(planner._logits._traced) == len(decider._logits._traced) == 1  # one per observation shape
+    assert pickle.loads(pickle.dumps(planner))(*seen[-1][1:]) == planner(*seen[-1][1:])
 
 
 def test_the_option_envs_planner_is_loaded_once_per_process_path_and_world():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import gymnasium as gym
@@ -99,6 +100,39 @@ def test_sampled_actions_respect_the_action_masks(env):
         with th.no_grad():
             actions, _, _ = policy(obs, action_masks=masks)
         assert masks[np.arange(64), actions.numpy()].all()
+
+
+def test_the_traced_rollout_forward_gives_sb3_contribs_actions_values_and_log_probs(env):
+    """Without gradients the planner's forward runs traced: the same actions (the same random numbers
+    drawn), values and log-probabilities as sb3-contrib's forward, to the bit, also after a training step
+    changed the weights in place; with gradients it is sb3-contrib's own."""
+    from sb3_contrib.common.maskable.policies import MaskableActorCriticPolicy
+
+    th.manual_seed(0)
+    policy = MotionPlannerPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **TINY_POLICY)
+    rng = np.random.default_rng(0)
+    for batch, update in ((2, False), (2, True), (5, False)):
+        obs = obs_as_tensor(observations(env, batch, seed=batch), "cpu")
+        if update:
+            loss = policy.evaluate_actions(obs, th.zeros(batch))[0].mean()
+            policy.optimizer.zero_grad()
+            loss.backward()
+            policy.optimizer.step()
+        masks = rng.random((batch, 6)) < 0.5
+        masks[:, 0] = True
+        for given, deterministic in ((masks, False), (None, False), (masks, True)):
+            outputs = []
+            for forward in (policy.forward, partial(MaskableActorCriticPolicy.forward, policy)):
+                th.manual_seed(1)
+                with th.no_grad():
+                    outputs.append(forward(obs, deterministic=deterministic, action_masks=given))
+            for traced, reference in zip(*outputs, strict=True):
+                assert th.equal(traced, reference)
+    assert len(policy._heads._traced) == 2  # batches of 2 and of 5
+    obs = obs_as_tensor(observations(env, 2), "cpu")
+    th.manual_seed(1)
+    _, _, log_prob = policy(obs)
+    assert log_prob.requires_grad  # with gradients, sb3-contrib's forward
 
 
 def test_saved_model_loads_and_predicts_with_masks_in_a_fresh_process(env, tmp_path):

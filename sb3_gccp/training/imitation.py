@@ -43,6 +43,7 @@ from gccp_envs.config import (
 )
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
+from sb3_gccp.frozen import FrozenPolicy
 from sb3_gccp.progress import new_bar
 
 EXPERTS = {"scripted": ScriptedPlanner, "search": SearchPlanner}
@@ -209,14 +210,16 @@ Driver = Callable[[dict[str, np.ndarray], np.ndarray], int]
 
 
 class PolicyDriver:
-    """A policy's most likely action under the mask (how the frozen planner drives). An object rather
-    than a closure, so that it pickles into the processes that label in parallel.
+    """A policy's most likely action under the mask, as the frozen planner drives
+    (:class:`~sb3_gccp.frozen.FrozenPolicy`: ``predict``'s action, traced). An object rather than a
+    closure, so that it pickles into the processes that label in parallel.
 
     :param policy: the policy of the model being cloned
     """
 
     def __init__(self, policy: MaskableActorCriticPolicy) -> None:
         self.policy = policy
+        self._frozen = FrozenPolicy(policy)
 
     def __getstate__(self) -> dict[str, Any]:
         # The class, its constructor's arguments and the weights, as SB3's ``policy.save`` keeps them: a
@@ -228,11 +231,10 @@ class PolicyDriver:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.policy = state["class"](**state["kwargs"])
         self.policy.load_state_dict(state["weights"])
-        self.policy.set_training_mode(False)
+        self._frozen = FrozenPolicy(self.policy)
 
     def __call__(self, obs: dict[str, np.ndarray], mask: np.ndarray) -> int:
-        action, _ = self.policy.predict(obs, action_masks=mask, deterministic=True)
-        return int(action)
+        return self._frozen(obs, mask)
 
 
 def _no_learning(progress_remaining: float) -> float:
