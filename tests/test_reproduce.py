@@ -199,6 +199,14 @@ def test_collecting_unfinished_runs_writes_nothing(quick_folder, capsys):
     assert not (quick_folder / "out").exists()
 
 
+def test_results_json_writes_errors_over_no_neighbour_as_null():
+    from sb3_gccp.reproduce.collect import strict_json
+
+    text = strict_json({"errors": {"0": [0.5, float("nan")], "1": (float("inf"), 2)}, "n": 3})
+    assert json.loads(text) == {"errors": {"0": [0.5, None], "1": [None, 2]}, "n": 3}
+    assert "NaN" not in text and "Infinity" not in text
+
+
 def test_paper_preset_configs_change_only_the_budget_and_the_gccp_variant():
     paper = PRESETS["paper"]
     decider = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPDecider-v0")

@@ -7,6 +7,7 @@ runs made by other processes or on other machines, and trains nothing.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from collections.abc import Mapping
@@ -112,8 +113,24 @@ def collect(plan: Plan, started: float | None = None) -> dict[str, Any]:
     copy_records(plan, request.out / RECORDS_DIR, errors)
     write_outputs(plan, runs, errors)
     results["wall_clock_s"] = round(time.perf_counter() - started, 1)
-    (request.out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    (request.out / "results.json").write_text(strict_json(results) + "\n")
     return results
+
+
+def strict_json(value: Any) -> str:
+    """``value`` as JSON that any parser reads: a float that is not finite (a predictor error over no
+    neighbour is NaN) is written as ``null``, not as Python's ``NaN``."""
+
+    def finite(item: Any) -> Any:
+        if isinstance(item, float) and not math.isfinite(item):
+            return None
+        if isinstance(item, Mapping):
+            return {key: finite(entry) for key, entry in item.items()}
+        if isinstance(item, list | tuple):
+            return [finite(entry) for entry in item]
+        return item
+
+    return json.dumps(finite(value), indent=2, allow_nan=False)
 
 
 def copy_records(plan: Plan, folder: Path, errors: Mapping[int, Any]) -> None:
