@@ -110,8 +110,8 @@ class MotionPlannerPolicy(MaskableActorCriticPolicy):
     ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Actions, values and log-probabilities, as ``MaskableActorCriticPolicy.forward`` gives them to
         the bit (the same random numbers drawn); without gradients (PPO's rollouts), from the network
-        traced (:mod:`sb3_gccp.traced`)."""
-        if th.is_grad_enabled() or not isinstance(obs, dict):
+        traced (:mod:`sb3_gccp.traced`), when the actor and the critic share the features extractor."""
+        if th.is_grad_enabled() or not isinstance(obs, dict) or not self.share_features_extractor:
             return super().forward(obs, deterministic, action_masks)  # type: ignore[arg-type]
         logits, values = self._heads(obs)
         log_probs = masked_log_probs(logits.view(-1, logits.shape[-1]), action_masks)
@@ -285,9 +285,7 @@ class DecisionMakerPolicy(MaskableActorCriticPolicy):
         if self.ortho_init:
             self.action_net.apply(partial(self.init_weights, gain=0.01))
         self.optimizer = self.optimizer_class(
-            self.parameters(),
-            lr=lr_schedule(1),
-            **self.optimizer_kwargs,  # type: ignore[call-arg]
+            self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
         )
 
 

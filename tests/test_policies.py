@@ -133,6 +133,12 @@ def test_the_traced_rollout_forward_gives_sb3_contribs_actions_values_and_log_pr
     th.manual_seed(1)
     _, _, log_prob = policy(obs)
     assert log_prob.requires_grad  # with gradients, sb3-contrib's forward
+    unshared = MotionPlannerPolicy(
+        env.observation_space, env.action_space, lambda _: 1e-3, share_features_extractor=False, **TINY_POLICY
+    )
+    with th.no_grad():
+        actions, _, _ = unshared(obs)
+    assert actions.shape == (2,) and not unshared._heads._traced  # its own extractors: sb3-contrib's forward
 
 
 def test_saved_model_loads_and_predicts_with_masks_in_a_fresh_process(env, tmp_path):
