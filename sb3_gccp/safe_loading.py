@@ -180,7 +180,13 @@ class SavedModel:
         )
         policy_class = self.policy_class(kind.policy_base)
         try:
-            policy = policy_class(observation_space, action_space, _no_learning, **self.policy_kwargs())
+            policy = policy_class(
+                observation_space,
+                action_space,
+                _no_learning,
+                optimizer_class=ActingOnly,
+                **self.policy_kwargs(),
+            )
         except (TypeError, ValueError, KeyError) as err:
             raise ValueError(
                 f"{self.path}: cannot rebuild its {policy_class.__name__}: {first_line(err)}"
@@ -303,6 +309,24 @@ def first_line(err: BaseException) -> str:
     """An exception's message on one line (its first), for one-line error reports."""
     lines = str(err).strip().splitlines()
     return lines[0] if lines else type(err).__name__
+
+
+class ActingOnly:
+    """The optimiser of a policy rebuilt only to act: it holds no state and never steps.
+
+    torch's own optimisers import ``torch._dynamo`` when the first one is made, about 3 s of every process
+    that would load a policy only to act with it (``evaluate``, each decider-stage env worker).
+    """
+
+    def __init__(self, params: Any, **kwargs: Any) -> None:
+        self.param_groups: list[dict[str, Any]] = []
+
+    def step(self, closure: Any = None) -> None:
+        """Refuse to train: the policy was rebuilt to act."""
+        raise RuntimeError("a policy rebuilt by sb3_gccp.safe_loading only acts; load it with SB3 to train")
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Nothing to clear."""
 
 
 def _no_learning(progress_remaining: float) -> float:

@@ -32,14 +32,16 @@ def test_a_frozen_policy_acts_as_predict_does_and_leaves_torch_threads_alone():
 
 
 def test_the_traced_policies_take_predicts_actions_over_a_hierarchys_episodes():
-    """The planner and the decider traced, against ``predict`` on the same observations: with the
-    env's masks, without a mask, and with the most likely action masked out."""
+    """The planner and the decider, their modules for the first calls and traced after them, against
+    ``predict`` on the same observations: with the env's masks, without a mask, and with the most likely
+    action masked out."""
     from sb3_gccp.hierarchy import load_hierarchy
 
     hierarchy = load_hierarchy(PLANNER.parent)
     env = hierarchy.make_env()
     decider = hierarchy.decider_policy(env.config)
     planner = env.planner
+    planner._logits.after_calls = decider._logits.after_calls = 3
     references = {
         id(frozen): MaskablePPO.load(path, device="cpu")
         for frozen, path in ((planner, PLANNER), (decider, hierarchy.decider))

@@ -110,6 +110,7 @@ def test_the_traced_rollout_forward_gives_sb3_contribs_actions_values_and_log_pr
 
     th.manual_seed(0)
     policy = MotionPlannerPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **TINY_POLICY)
+    policy._heads.after_calls = 1  # the module for a shape's first call, traced from its second
     rng = np.random.default_rng(0)
     for batch, update in ((2, False), (2, True), (5, False)):
         obs = obs_as_tensor(observations(env, batch, seed=batch), "cpu")
@@ -136,9 +137,11 @@ def test_the_traced_rollout_forward_gives_sb3_contribs_actions_values_and_log_pr
     unshared = MotionPlannerPolicy(
         env.observation_space, env.action_space, lambda _: 1e-3, share_features_extractor=False, **TINY_POLICY
     )
+    unshared._heads.after_calls = 0
     with th.no_grad():
         actions, _, _ = unshared(obs)
-    assert actions.shape == (2,) and not unshared._heads._traced  # its own extractors: sb3-contrib's forward
+    assert actions.shape == (2,)
+    assert not unshared._heads._calls and not unshared._heads._traced  # its own extractors: sb3-contrib's
 
 
 def test_saved_model_loads_and_predicts_with_masks_in_a_fresh_process(env, tmp_path):

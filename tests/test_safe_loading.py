@@ -14,6 +14,7 @@ from sb3_contrib import MaskablePPO
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.frozen import load_decider, load_planner
 from sb3_gccp.hierarchy import load_hierarchy
+from sb3_gccp.safe_loading import ActingOnly
 from sb3_gccp.training.baselines import baseline_algorithm, load_baseline, read_baseline_spec
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
@@ -61,6 +62,15 @@ def test_a_trusted_load_gives_the_same_policy(tiny_planner):
     assert_same_policy(
         load_planner(tiny_planner, world).policy, load_planner(tiny_planner, world, True).policy
     )
+
+
+def test_a_rebuilt_policy_has_an_optimiser_that_refuses_to_step(tiny_planner):
+    """Rebuilt to act, a policy makes no torch optimiser (the first one made imports torch._dynamo)."""
+    policy = load_planner(tiny_planner, IntersectionConfig.from_dict(TINY_WORLD)).policy
+    assert isinstance(policy.optimizer, ActingOnly) and not policy.optimizer.param_groups
+    policy.optimizer.zero_grad()
+    with pytest.raises(RuntimeError, match="only acts"):
+        policy.optimizer.step()
 
 
 @pytest.mark.parametrize(

@@ -70,6 +70,7 @@ from sb3_gccp.training.run_folder import (
     resume_checkpoint,
     run_budget,
 )
+from sb3_gccp.training.workers import start_worker_server
 
 
 def make_decider_env(
@@ -112,6 +113,8 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
         scripted = not (run.dir / PLANNER_FILE).is_file()
     gccp = gccp_settings(run.settings)
     world, n_timesteps, n_envs = run_budget(run.settings, own_keys=("gccp",))
+    if n_envs > 1:
+        start_worker_server(make_decider_env.__module__)  # its workers import this module
     th.manual_seed(run.seed)  # the predictor's first weights: the same seed, the same run
     predictor = gccp.make_predictor()  # before any folder is made: a bad predictor_init fails here
     if not run.resumed and not scripted:

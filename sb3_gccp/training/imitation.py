@@ -45,6 +45,7 @@ from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
 from sb3_gccp.frozen import FrozenPolicy
 from sb3_gccp.progress import new_bar
+from sb3_gccp.training.workers import start_worker_server
 
 EXPERTS = {"scripted": ScriptedPlanner, "search": SearchPlanner}
 """The planners the planner stage can clone, by the name the ``imitation.expert`` key takes."""
@@ -340,6 +341,7 @@ def _episodes(
     methods = multiprocessing.get_all_start_methods()
     context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
     initargs = (world, expert, dict(expert_kwargs), driver, th.get_num_threads())
+    start_worker_server(__name__)  # its processes import this module
     with context.Pool(workers, _start_worker, initargs) as pool:
         ahead = 2 * workers  # episodes asked for beyond the one awaited: no process waits for work
         pending = deque(pool.apply_async(_worker_episode, (seed + k,)) for k in range(ahead))
