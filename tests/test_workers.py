@@ -7,7 +7,6 @@ import sys
 
 import pytest
 
-
 WORKER_SEES = """
 import multiprocessing, sys
 from sb3_gccp.training.workers import start_worker_server
