@@ -170,7 +170,7 @@ def test_stage_all_trains_the_planner_for_n_g_episodes_then_the_decider(tmp_path
     assert yaml.safe_load((tmp_path / run / "hierarchy.yml").read_text())["decider"] == "decider.zip"
 
 
-def test_decider_stage_with_the_scripted_planner(tmp_path):
+def test_decider_stage_with_the_scripted_planner(tmp_path, cli):
     decider = yaml.safe_load(yaml.safe_dump(TINY_DECIDER["GCCPDecider-v0"]))
     decider.update(n_envs=1)
     decider["gccp"].update(n_episodes=1, predictor="learned")
@@ -202,9 +202,7 @@ def test_decider_stage_with_the_scripted_planner(tmp_path):
     assert yaml.safe_load((run / "config.yml").read_text())["env_kwargs"]["duration"] == 1.5
     # --gccp replaced the entry's predictor (learned) the same way.
     assert yaml.safe_load((run / "config.yml").read_text())["gccp"]["predictor"] == "cv"
-    result = run_cli(
-        "evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path
-    )
+    result = cli("evaluate", "--model", str(run), "--episodes-per-task", "1", "--tasks", "left", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "(GCCP: cv)" in result.stdout
 

@@ -20,7 +20,7 @@ def tiny_config(tmp_path: Path) -> Path:
     return path
 
 
-def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_config):
+def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_config, cli):
     result = run_cli(
         "train",
         "--stage",
@@ -72,7 +72,7 @@ def test_train_planner_writes_a_complete_run_folder_and_resumes(tmp_path, tiny_c
     assert all(data.count(b"t_start") == 1 for data in monitor.values())  # appended to, one header
 
     # A resume that fails (a planner run is no decider run) leaves the run as it was.
-    result = run_cli("train", "--stage", "decider", "--resume", str(run), cwd=tmp_path)
+    result = cli("train", "--stage", "decider", "--resume", str(run), cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
         "sb3_gccp: error: checkpoints/planner_32_steps holds no predictor.pt: not a checkpoint of this stage"
