@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import random
 import shutil
 from importlib.metadata import version
 from pathlib import Path
@@ -85,12 +86,20 @@ def traffic_specs(config: IntersectionConfig, layout: IntersectionLayout, k: int
 
 
 def _generate(layout: IntersectionLayout, folder: Path, **parts: Any) -> None:
-    """A scenario of our junction and ``parts`` (sstudio's ``traffic``, ``ego_missions``) in ``folder``."""
+    """A scenario of our junction and ``parts`` (sstudio's ``traffic``, ``ego_missions``) in ``folder``.
+
+    sstudio's build draws from Python's ``random``, from which SMARTS also draws SUMO's seed at every reset;
+    its state is put back afterwards, so that an episode that builds a scenario on first use runs as it does
+    on a built one."""
     from smarts.sstudio import gen_scenario
     from smarts.sstudio import sstypes as t
 
     shutil.copyfile(network_file(layout), folder / MAP_FILE)
-    gen_scenario(t.Scenario(**parts), output_dir=folder, seed=0)
+    state = random.getstate()
+    try:
+        gen_scenario(t.Scenario(**parts), output_dir=folder, seed=0)
+    finally:
+        random.setstate(state)
 
 
 def flow_name(k: int) -> str:

@@ -230,9 +230,6 @@ class SmartsWorld(IntersectionWorld):
         start = self.layout.paths.pose_at(np.array(path), np.array(s))
         with closing_on_error(self.close):
             simulation = self._simulation()
-            # built on first use, a scenario draws from Python's random: built before SUMO's seed is set
-            scenario_folder(self.config, self.layout, self.task)
-            traffic_specs(self.config, self.layout, self.flow)
             random.seed(sumo_seed)  # SMARTS draws SUMO's --seed from Python's random at every reset
             observation = simulation.reset(self._scenario(start))[EGO_ID]
             self._mission_route = self._route_of_mission(simulation)
