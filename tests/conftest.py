@@ -1,8 +1,11 @@
-"""Shared fixtures: an empty-road world with a hand-placed ego, the cached layout, hypothesis settings."""
+"""Shared fixtures: an empty-road world with a hand-placed ego, the cached layout, hypothesis settings; the
+SUMO networks and SMARTS scenarios the tests build go to a temporary folder, not the user's cache."""
 
 from __future__ import annotations
 
+import getpass
 import os
+import tempfile
 
 # Offscreen pygame without audio (ALSA probing costs seconds on machines without a sound card).
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
@@ -23,6 +26,7 @@ from hypothesis import HealthCheck, Phase, settings
 import gccp_envs  # noqa: F401  (registers the environments)
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scenario import IntersectionLayout, layout_for
+from gccp_envs.sumo.network import CACHE_VARIABLE
 from gccp_envs.world import IntersectionWorld
 
 _PHASES = [Phase.explicit, Phase.reuse, Phase.generate, Phase.shrink]  # no slow "explain" phase
@@ -45,6 +49,15 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "gccp"))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Build the tests' SUMO networks and SMARTS scenarios in a folder of the system's temporary folder (kept
+    between runs, shared by the xdist workers, which inherit the variable), not in the user's cache, unless
+    ``$GCCP_SUMO_CACHE`` names a folder already."""
+    if not os.environ.get(CACHE_VARIABLE):
+        folder = Path(tempfile.gettempdir()) / f"gccp_envs-tests-{getpass.getuser()}"
+        os.environ[CACHE_VARIABLE] = str(folder / "sumo")
 
 
 @pytest.fixture
