@@ -9,6 +9,7 @@ from gccp_envs import DECIDER_ENV_ID, FLAT_ENV_ID, PLANNER_ENV_ID
 __all__ = [
     "ARGS_FILE",
     "BASELINE_FILE",
+    "CHOICE_FILE",
     "COMMAND_FILE",
     "CONFIG_FILE",
     "DECIDER_ENV_ID",
@@ -47,6 +48,8 @@ TRAINING_FILE = "training.json"
 """Written by ``reproduce`` when a method's training finished: its budget and wall clock."""
 EVALUATION_FILE = "evaluation.json"
 """Written by ``reproduce``: a method's evaluation table and episodes."""
+CHOICE_FILE = "choice.json"
+"""Written by the decider stage when it chooses its model on validation flows: every candidate's table."""
 
 HIERARCHY_FILE = "hierarchy.yml"
 """The files, GCCP variant and check and world of a trained hierarchy (:mod:`sb3_gccp.hierarchy`)."""

@@ -7,7 +7,8 @@ SB3 ``.zip`` files lose their optimisers' moment estimates on the way (Adam's ``
 training resumed from an exported model restarts those estimates (a run's ``checkpoints/`` keep them).
 They also lose the training machine's TensorBoard folder, where SB3's ``learn()`` on a loaded model would
 otherwise write (or fail, without tensorboard).
-The run's records come along when present: command, config, episodes, evaluation, training curve.
+The run's records come along when present: command, config, episodes, evaluation, training curve, the
+choice of the run's model on validation flows.
 World config keys and GCCP check settings can be replaced on the way (``--set``, ``--mask``), so that the
 exported hierarchy runs, for example, another GCCP check than it was trained with; ``hierarchy.yml`` then
 lists them under ``overrides`` (settings the decider was not trained with), and evaluating it needs
@@ -36,6 +37,7 @@ import torch as th
 from sb3_gccp.constants import (
     ARGS_FILE,
     BASELINE_FILE,
+    CHOICE_FILE,
     COMMAND_FILE,
     CONFIG_FILE,
     DECIDER_FILE,
@@ -63,6 +65,7 @@ RECORDS = (
     TRAINING_FILE,
     EVALUATION_FILE,
     TRAINING_CURVE_FILE,
+    CHOICE_FILE,
 )
 """Files of a run folder copied along when present."""
 

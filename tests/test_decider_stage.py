@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 from pathlib import Path
@@ -49,13 +50,19 @@ def tiny_planner(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_path, tiny_planner, cli):
+def _train_decider(tmp_path: Path, entry: dict, planner: Path, log_folder: str = "runs") -> tuple[Path, str]:
+    """The run folder and the output of a decider stage with zoo ``entry``, seed 2, in ``tmp_path``."""
     config = tmp_path / "tiny.yml"
-    config.write_text(yaml.safe_dump(TINY_DECIDER))
-    args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", "runs")
-    result = run_cli(*args, "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
+    config.write_text(yaml.safe_dump(entry))
+    args = ("train", "--stage", "decider", "--config", str(config), "--log-folder", log_folder)
+    result = run_cli(*args, "--planner", str(planner), "--seed", "2", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    (run,) = (tmp_path / "runs" / "decider").iterdir()
+    (run,) = (tmp_path / log_folder / "decider").iterdir()
+    return run, result.stdout
+
+
+def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_path, tiny_planner, cli):
+    run, _ = _train_decider(tmp_path, TINY_DECIDER, tiny_planner)
     assert run.name.startswith("GCCPDecider-v0_2_")
     for name in (
         "planner.zip",
@@ -78,9 +85,7 @@ def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_
 
     # The same seed trains the same decider and predictor: the predictor starts from the run's seed,
     # and its updates run beside the env workers' steps in the order the episodes ended.
-    again = run_cli(*args[:-1], "again", "--planner", str(tiny_planner), "--seed", "2", cwd=tmp_path)
-    assert again.returncode == 0, again.stderr
-    (rerun,) = (tmp_path / "again" / "decider").iterdir()
+    rerun, _ = _train_decider(tmp_path, TINY_DECIDER, tiny_planner, "again")
     first, second = (
         th.load(folder / "predictor.pt", weights_only=True)["state_dict"] for folder in (run, rerun)
     )
@@ -122,6 +127,40 @@ def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_
     assert (state["episodes"], state["gradient_steps"]) == (5, 25)  # K_p = 5 steps per episode
 
 
+def test_the_run_model_is_the_candidate_best_on_the_validation_flows(tmp_path, tiny_planner, cli):
+    entry = copy.deepcopy(TINY_DECIDER)
+    entry["GCCPDecider-v0"]["gccp"].update(  # about 4 episodes a rollout: candidates at its starts
+        n_episodes=9,
+        choose_on_flows=7,
+        choose_episodes_per_task=1,
+        choose_every_episodes=2,
+        choose_from_episodes=2,
+    )
+    run, stdout = _train_decider(tmp_path, entry, tiny_planner)
+    names = sorted((p.name for p in (run / "candidates").iterdir()), key=int)
+    assert names and all(2 <= int(name) < 9 for name in names)
+    choice = json.loads((run / "choice.json").read_text())
+    assert list(choice["tables"]) == [*names, "final"]
+    ranked = [
+        (table["overall"]["success"], -table["overall"]["crashed"], i)
+        for i, table in enumerate(choice["tables"].values())
+    ]
+    chosen = choice["chosen"]
+    assert chosen == [*names, "final"][max(ranked)[2]]
+    assert f"after {chosen} episodes" in stdout
+    source = run / "final" if chosen == "final" else run / "candidates" / chosen
+    if chosen != "final":
+        assert (run / "decider.zip").read_bytes() == (source / "decider.zip").read_bytes()
+        assert (run / "final" / "decider.zip").read_bytes() != (run / "decider.zip").read_bytes()
+    assert (run / "predictor.pt").read_bytes() == (
+        (run / "predictor.pt") if chosen == "final" else source / "predictor.pt"
+    ).read_bytes()
+    # The choice's table is what ``sb3_gccp evaluate`` gives for the run's model on those flows.
+    evaluate = ("evaluate", "--episodes-per-task", "1", "--seed", "7", "--json", "table.json")
+    assert cli(*evaluate, "--model", str(run), cwd=tmp_path).returncode == 0
+    assert json.loads((tmp_path / "table.json").read_text())["table"] == choice["tables"][chosen]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -140,6 +179,10 @@ def test_decider_stage_trains_the_same_run_for_a_seed_evaluates_and_resumes(tmp_
             "gccp.predictor must be one of learned, no_goal, cv, none, got 'bogus'",
         ),
         (["train", "--stage", "planner", "--gccp", "predictor=none"], "--gccp sets the decider's gccp map"),
+        (
+            ["train", "--stage", "decider", "--planner", "scripted", "--gccp", "choose_on_flows=-1"],
+            "gccp.choose_on_flows must be a non-negative integer, got -1",
+        ),
         (["evaluate", "--model", "nowhere"], "model not found: nowhere"),
         (["evaluate", "--model", "."], "no hierarchy.yml in ."),
         (["evaluate", "--model", ".", "--episodes-per-task", "0"], "--episodes-per-task must be at least 1"),

@@ -49,6 +49,7 @@ from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.gccp.training import PredictorTrainer, displacement_errors
 from sb3_gccp.progress import new_bar
 from sb3_gccp.training.checkpoints import Checkpoint, Writer, save_checkpoint
+from sb3_gccp.training.choosing import save_candidate
 from sb3_gccp.training.episodes import TrainingClock, episode_row, read_episodes, write_episodes
 
 STATE_FILE = "gccp_state.pt"
@@ -130,6 +131,7 @@ class GCCPCallback(BaseCallback):
         self._clock = TrainingClock()
         self.run_dir = run_dir
         self._checkpointed_at = 0
+        self._candidate_slot = 0
         self._staged: list[list[tuple[Any, ...]]] = []
         self._waiting: deque[Callable[[], None]] = deque()
         self._losses: list[float] = []
@@ -150,6 +152,11 @@ class GCCPCallback(BaseCallback):
         every = self.settings.save_every_episodes
         if self.run_dir is not None and self.episodes // every > self._checkpointed_at // every:
             self.checkpoint(self.model)
+        slot = self.episodes // self.settings.choose_every_episodes
+        if slot > self._candidate_slot:
+            self._candidate_slot = slot
+            if self.choosing and self.episodes >= self.settings.choose_from_episodes:
+                self.save_candidate(self.model)
 
     def _on_step(self) -> bool:
         infos: list[dict[str, Any]] = self.locals["infos"]
@@ -269,6 +276,18 @@ class GCCPCallback(BaseCallback):
         self._checkpointed_at = self.episodes
         return save_checkpoint(self.run_dir, "decider", model.num_timesteps, files)
 
+    @property
+    def choosing(self) -> bool:
+        """Whether the run's model is chosen on validation flows (see ``GCCPSettings.choose_on_flows``)."""
+        return self.run_dir is not None and self.settings.choose_on_flows is not None
+
+    def save_candidate(self, model: BaseAlgorithm) -> Path:
+        """Write the decider and its predictor as they are now into ``candidates/<episodes>/`` of the run
+        folder, for :func:`sb3_gccp.training.choosing.choose_model`."""
+        assert self.run_dir is not None
+        self.run_waiting()
+        return save_candidate(self.run_dir, self.episodes, model, self.predictor)
+
     def restore(self, checkpoint: Checkpoint) -> None:
         """Read the state written by :meth:`checkpoint` (the model, predictor weights and replay buffer are
         loaded by the caller)."""
@@ -283,3 +302,4 @@ class GCCPCallback(BaseCallback):
         self._clock = TrainingClock(self.history)
         self._recent.extend(self.history[-100:])
         self._checkpointed_at = self.episodes
+        self._candidate_slot = self.episodes // self.settings.choose_every_episodes

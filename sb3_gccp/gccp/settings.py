@@ -168,6 +168,18 @@ class GCCPSettings:
     """Decisions kept in the replay buffer D (paper: not given)."""
     save_every_episodes: int = 100
     """Episodes between checkpoints (model, predictor, optimiser, replay buffer)."""
+    choose_on_flows: int | None = None
+    """Ours (the paper keeps the last model): the first traffic seed of the validation flows on which the
+    run's candidates (the model every ``choose_every_episodes`` from ``choose_from_episodes`` on, with its
+    predictor, and the final one) are evaluated after training, as SB3's ``EvalCallback`` keeps its best
+    model; the run's model is the candidate with the highest success there (then fewer collisions, then the
+    later). None: the final model."""
+    choose_episodes_per_task: int = 100
+    """Validation flows per task of each candidate."""
+    choose_every_episodes: int = 200
+    """Episodes between two candidates."""
+    choose_from_episodes: int = 1000
+    """The first candidate: the model at the first rollout after this many episodes."""
     check: GCCPCheck = field(default_factory=GCCPCheck)
     """The collision check of the masks, given in the map by its ``mask_*`` keys."""
 
@@ -176,9 +188,16 @@ class GCCPSettings:
 
         if self.predictor not in PREDICTORS:
             raise ValueError(f"gccp.predictor must be one of {', '.join(PREDICTORS)}, got {self.predictor!r}")
-        for name in ("n_episodes", "predictor_batch_size", "buffer_capacity", "save_every_episodes"):
+        for name in (
+            "n_episodes",
+            "predictor_batch_size",
+            "buffer_capacity",
+            "save_every_episodes",
+            "choose_episodes_per_task",
+            "choose_every_episodes",
+        ):
             require_int(f"gccp.{name}", getattr(self, name))
-        for name in ("mask_after_episodes", "predictor_steps_per_episode"):
+        for name in ("mask_after_episodes", "predictor_steps_per_episode", "choose_from_episodes"):
             require_int(f"gccp.{name}", getattr(self, name), minimum=0)
         if self.planner_episodes is not None and (
             not isinstance(self.planner_episodes, int) or self.planner_episodes < 1
@@ -186,6 +205,8 @@ class GCCPSettings:
             raise ValueError(
                 f"gccp.planner_episodes must be a positive integer or null, got {self.planner_episodes!r}"
             )
+        if self.choose_on_flows is not None:
+            require_int("gccp.choose_on_flows", self.choose_on_flows, minimum=0)
         require_positive("gccp.predictor_learning_rate", self.predictor_learning_rate)
         PredictorConfig.from_dict(self.predictor_kwargs)
 

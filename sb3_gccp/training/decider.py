@@ -5,8 +5,13 @@ Run folder (``<log_folder>/decider/GCCPDecider-v0_<seed>_<time>/``), complete fo
     config.yml, args.yml, command.txt   the resolved zoo entry (with its ``gccp`` map) and the command
     planner.zip                         the frozen motion-planner the options ran (none with
                                         ``--planner scripted``: the scripted pure-pursuit planner)
-    decider.zip                         the trained decision-maker
-    predictor.pt                        the GCCP predictor trained on the side (learned variants)
+    decider.zip                         the trained decision-maker: the final one or, with
+                                        ``gccp.choose_on_flows``, the candidate chosen on validation flows
+    predictor.pt                        the GCCP predictor trained on the side (learned variants), the
+                                        decider's own
+    candidates/, final/, choice.json    with ``gccp.choose_on_flows``: the candidates, the final model
+                                        when another was chosen, every candidate's validation table
+                                        (:mod:`sb3_gccp.training.choosing`)
     hierarchy.yml                       what ``sb3_gccp evaluate`` loads: files, GCCP variant, world
     episodes.csv                        per training episode: task, success, crash, masks on, clock
     training_curve.png, metrics.json    success and collision rate per episode; where it passed 70 %
@@ -36,6 +41,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from gccp_envs.config import IntersectionConfig
 from sb3_gccp.constants import (
+    CHOICE_FILE,
     DECIDER_ENV_ID,
     DECIDER_FILE,
     EPISODES_FILE,
@@ -53,6 +59,7 @@ from sb3_gccp.gccp.settings import LEARNED, GCCPSettings
 from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.hyperparams import HyperparamsError
 from sb3_gccp.training.checkpoints import Checkpoint, write_atomically
+from sb3_gccp.training.choosing import choose_model
 from sb3_gccp.training.episodes import rolling_rate
 from sb3_gccp.training.planner import train_planner
 from sb3_gccp.training.run_folder import (
@@ -168,6 +175,12 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
     finally:
         env.close()
     write_decider_run(run.dir, gccp_callback.checkpoint(model), gccp_callback.history, gccp, scripted, world)
+    if gccp_callback.choosing:
+        assert gccp.choose_on_flows is not None
+        choice = choose_model(run.dir, gccp.choose_on_flows, gccp.choose_episodes_per_task, workers=n_envs)
+        if choice is not None:
+            chosen = choice["chosen"]
+            print(f"the run's model: after {chosen} episodes, chosen on validation flows ({CHOICE_FILE})")
     return run.dir
 
 

@@ -1,0 +1,77 @@
+"""The decider run's model chosen on validation flows (``sb3_gccp.training.choosing``), tables stubbed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sb3_gccp.training import choosing
+
+
+def _run_folder(tmp_path: Path, names: list[str]) -> Path:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "decider.zip").write_bytes(b"final decider")
+    (run / "predictor.pt").write_bytes(b"final predictor")
+    for name in names:
+        folder = run / "candidates" / name
+        folder.mkdir(parents=True)
+        (folder / "decider.zip").write_bytes(f"decider {name}".encode())
+        (folder / "predictor.pt").write_bytes(f"predictor {name}".encode())
+    return run
+
+
+def _stub_tables(monkeypatch: pytest.MonkeyPatch, overall: dict[str, tuple[float, float]]) -> list[str]:
+    """Each candidate's (success, collision) by the decider file it is evaluated with; returns the calls."""
+    calls: list[str] = []
+
+    def table(run_dir: str, files: tuple[str, str | None], flows: int, episodes: int) -> dict:
+        name = Path(files[0]).parent.name or "final"
+        calls.append(name)
+        success, crashed = overall[name]
+        return {"overall": {"success": success, "crashed": crashed}}
+
+    monkeypatch.setattr(choosing, "_validation_table", table)
+    return calls
+
+
+@pytest.mark.parametrize(
+    ("overall", "chosen"),
+    [
+        ({"1000": (94.0, 3.0), "1200": (93.0, 1.0), "final": (92.0, 0.0)}, "1000"),  # success first
+        ({"1000": (94.0, 3.0), "1200": (94.0, 2.0), "final": (93.0, 0.0)}, "1200"),  # then fewer collisions
+        ({"1000": (94.0, 2.0), "1200": (94.0, 2.0), "final": (94.0, 2.0)}, "final"),  # then the later
+    ],
+)
+def test_the_candidate_with_the_most_successes_then_the_fewest_collisions_then_the_latest(
+    tmp_path, monkeypatch, overall, chosen
+):
+    run = _run_folder(tmp_path, ["1000", "1200"])
+    calls = _stub_tables(monkeypatch, overall)
+    choice = choosing.choose_model(run, flows=2000, episodes_per_task=100)
+    assert choice is not None and choice["chosen"] == chosen
+    assert calls == ["1000", "1200", "final"]
+    assert json.loads((run / "choice.json").read_text()) == choice
+    if chosen == "final":
+        assert (run / "decider.zip").read_bytes() == b"final decider"
+        assert not (run / "final").exists()
+    else:
+        assert (run / "decider.zip").read_bytes() == f"decider {chosen}".encode()
+        assert (run / "predictor.pt").read_bytes() == f"predictor {chosen}".encode()
+        assert (run / "final" / "decider.zip").read_bytes() == b"final decider"
+        assert (run / "final" / "predictor.pt").read_bytes() == b"final predictor"
+
+
+def test_without_candidates_the_final_model_stays_and_nothing_is_evaluated(tmp_path, monkeypatch):
+    run = _run_folder(tmp_path, [])
+    calls = _stub_tables(monkeypatch, {})
+    assert choosing.choose_model(run, flows=2000, episodes_per_task=100) is None
+    assert calls == [] and not (run / "choice.json").exists()
+    assert (run / "decider.zip").read_bytes() == b"final decider"
+
+
+def test_candidates_are_ordered_by_their_episodes_not_by_name(tmp_path):
+    run = _run_folder(tmp_path, ["800", "1000", "1200"])
+    assert list(choosing.candidates(run)) == ["800", "1000", "1200"]
