@@ -24,13 +24,13 @@ from typing import Any
 from stable_baselines3.common.base_class import BaseAlgorithm
 from torch import nn
 
+from gccp_envs.config import TASKS
 from sb3_gccp.constants import CHOICE_FILE, DECIDER_FILE, PREDICTOR_FILE
 
 CANDIDATES_DIR = "candidates"
 """The candidates' folder in a decider run folder."""
 FINAL_DIR = "final"
 """Where the final model goes when another candidate is chosen."""
-TASKS = ("left", "straight", "right")
 
 
 def save_candidate(run_dir: Path, episodes: int, model: BaseAlgorithm, predictor: nn.Module | None) -> Path:

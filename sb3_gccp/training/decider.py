@@ -177,6 +177,7 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
     write_decider_run(run.dir, gccp_callback.checkpoint(model), gccp_callback.history, gccp, scripted, world)
     if gccp_callback.choosing:
         assert gccp.choose_on_flows is not None
+        print(f"choosing the run's model on validation flows from {gccp.choose_on_flows} (see {CHOICE_FILE})")
         choice = choose_model(run.dir, gccp.choose_on_flows, gccp.choose_episodes_per_task, workers=n_envs)
         if choice is not None:
             chosen = choice["chosen"]
