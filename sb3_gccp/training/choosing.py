@@ -18,6 +18,7 @@ import multiprocessing
 import shutil
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from torch import nn
 
 from gccp_envs.config import TASKS
 from sb3_gccp.constants import CHOICE_FILE, DECIDER_FILE, PREDICTOR_FILE
+from sb3_gccp.training.checkpoints import write_atomically
 
 CANDIDATES_DIR = "candidates"
 """The candidates' folder in a decider run folder."""
@@ -50,7 +52,7 @@ def save_candidate(run_dir: Path, episodes: int, model: BaseAlgorithm, predictor
 
 
 def candidates(run_dir: Path) -> dict[str, Path]:
-    """The run's candidates by name (their episode count, then ``final``), as folders of ``run_dir``."""
+    """The run's candidates by name (their episode count), in the order they were saved."""
     folder = run_dir / CANDIDATES_DIR
     found = sorted((p for p in folder.glob("[0-9]*") if p.is_dir()), key=lambda p: int(p.name))
     return {p.name: p for p in found}
@@ -85,14 +87,15 @@ def choose_model(
         _keep_final(run_dir)
         for name in (DECIDER_FILE, PREDICTOR_FILE):
             if (found[chosen] / name).is_file():
-                shutil.copyfile(found[chosen] / name, run_dir / name)
+                write_atomically(run_dir / name, partial(shutil.copyfile, found[chosen] / name))
     choice = {
         "flows": flows,
         "episodes_per_task": episodes_per_task,
         "chosen": chosen,
         "tables": dict(zip(names, tables, strict=True)),
     }
-    (run_dir / CHOICE_FILE).write_text(json.dumps(choice, indent=2) + "\n")
+    text = json.dumps(choice, indent=2) + "\n"
+    write_atomically(run_dir / CHOICE_FILE, lambda path: path.write_text(text))
     return choice
 
 
@@ -109,7 +112,7 @@ def _keep_final(run_dir: Path) -> None:
     final.mkdir(exist_ok=True)
     for name in (DECIDER_FILE, PREDICTOR_FILE):
         if (run_dir / name).is_file() and not (final / name).is_file():
-            shutil.copyfile(run_dir / name, final / name)
+            write_atomically(final / name, partial(shutil.copyfile, run_dir / name))
 
 
 def _validation_table(
