@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from gccp_envs.config import TASKS
+from sb3_gccp.evaluation import EpisodeResult
 from sb3_gccp.training import choosing
 
 
@@ -24,16 +26,22 @@ def _run_folder(tmp_path: Path, names: list[str]) -> Path:
 
 
 def _stub_tables(monkeypatch: pytest.MonkeyPatch, overall: dict[str, tuple[float, float]]) -> list[str]:
-    """Each candidate's (success, collision) by the decider file it is evaluated with; returns the calls."""
+    """Each candidate's (success, collision) [%] in every task, by the decider file it is evaluated with;
+    returns the candidates evaluated, one entry per task."""
     calls: list[str] = []
 
-    def table(run_dir: str, files: tuple[str, str | None], flows: int, episodes: int) -> dict:
+    def episodes(run_dir: str, files: tuple[str, str | None], task: str, flows: int, n: int) -> list:
         name = Path(files[0]).parent.name or "final"
         calls.append(name)
-        success, crashed = overall[name]
-        return {"overall": {"success": success, "crashed": crashed}}
+        success, crashed = (round(rate * n / 100) for rate in overall[name])
+        return [
+            EpisodeResult(
+                task, flows + k, k < success, success <= k < success + crashed, False, False, False, 1, 0.0
+            )
+            for k in range(n)
+        ]
 
-    monkeypatch.setattr(choosing, "_validation_table", table)
+    monkeypatch.setattr(choosing, "_validation_episodes", episodes)
     return calls
 
 
@@ -52,7 +60,7 @@ def test_the_candidate_with_the_most_successes_then_the_fewest_collisions_then_t
     calls = _stub_tables(monkeypatch, overall)
     choice = choosing.choose_model(run, flows=2000, episodes_per_task=100)
     assert choice is not None and choice["chosen"] == chosen
-    assert calls == ["1000", "1200", "final"]
+    assert calls == [name for name in ("1000", "1200", "final") for _ in TASKS]
     assert json.loads((run / "choice.json").read_text()) == choice
     if chosen == "final":
         assert (run / "decider.zip").read_bytes() == b"final decider"
@@ -75,3 +83,11 @@ def test_without_candidates_the_final_model_stays_and_nothing_is_evaluated(tmp_p
 def test_candidates_are_ordered_by_their_episodes_not_by_name(tmp_path):
     run = _run_folder(tmp_path, ["800", "1000", "1200"])
     assert list(choosing.candidates(run)) == ["800", "1000", "1200"]
+
+
+def test_the_validation_episodes_are_counted_on_a_bar(tmp_path, monkeypatch, capsys):
+    run = _run_folder(tmp_path, ["1000"])
+    _stub_tables(monkeypatch, {"1000": (94.0, 3.0), "final": (92.0, 0.0)})
+    choosing.choose_model(run, flows=2000, episodes_per_task=10, progress=True)
+    err = capsys.readouterr().err
+    assert "validation" in err and "60/60" in err

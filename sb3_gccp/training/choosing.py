@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import shutil
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -27,6 +27,8 @@ from torch import nn
 
 from gccp_envs.config import TASKS
 from sb3_gccp.constants import CHOICE_FILE, DECIDER_FILE, PREDICTOR_FILE
+from sb3_gccp.evaluation import EpisodeResult, evaluate, summarize
+from sb3_gccp.progress import new_bar
 from sb3_gccp.training.checkpoints import write_atomically
 
 CANDIDATES_DIR = "candidates"
@@ -59,7 +61,7 @@ def candidates(run_dir: Path) -> dict[str, Path]:
 
 
 def choose_model(
-    run_dir: Path, flows: int, episodes_per_task: int, workers: int = 1
+    run_dir: Path, flows: int, episodes_per_task: int, workers: int = 1, progress: bool = False
 ) -> dict[str, Any] | None:
     """Evaluate the candidates and the run's final model on the validation flows, make the best the run's
     model, write ``choice.json`` and return what it holds (None when there is no candidate to compare).
@@ -67,20 +69,39 @@ def choose_model(
     :param run_dir: a finished decider run folder (its ``hierarchy.yml`` names the final model)
     :param flows: the first traffic seed of the validation flows
     :param episodes_per_task: validation flows per task
-    :param workers: processes evaluating candidates side by side (the tables do not depend on it)
+    :param workers: processes evaluating side by side, one task of one candidate at a time (the tables do
+        not depend on it)
+    :param progress: a bar over the validation episodes, advanced as each task of a candidate is done
     """
     found = candidates(run_dir)
     if not found:
         return None
     names = [*found, FINAL_DIR]
-    jobs = [(str(run_dir), _files(run_dir, found.get(name)), flows, episodes_per_task) for name in names]
-    if workers > 1:
-        methods = multiprocessing.get_all_start_methods()
-        context = multiprocessing.get_context("forkserver" if "forkserver" in methods else None)
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
-            tables = list(pool.map(_validation_table, *zip(*jobs, strict=True)))
-    else:
-        tables = [_validation_table(*job) for job in jobs]
+    jobs = [
+        (str(run_dir), _files(run_dir, found.get(name)), task, flows, episodes_per_task)
+        for name in names
+        for task in TASKS
+    ]
+    with new_bar(total=len(jobs) * episodes_per_task, enabled=progress, desc="validation", unit="ep") as bar:
+        if workers > 1:
+            methods = multiprocessing.get_all_start_methods()
+            context = multiprocessing.get_context("forkserver" if "forkserver" in methods else None)
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+                futures = [pool.submit(_validation_episodes, *job) for job in jobs]
+                for future in as_completed(futures):
+                    future.result()  # a failed job stops the choice here
+                    bar.update(episodes_per_task)
+                episodes = [future.result() for future in futures]
+        else:
+            episodes = []
+            for job in jobs:
+                episodes.append(_validation_episodes(*job))
+                bar.update(episodes_per_task)
+    per_name = len(TASKS)
+    tables = [
+        summarize([r for task in episodes[i * per_name : (i + 1) * per_name] for r in task])
+        for i in range(len(names))
+    ]
     ranked = [(t["overall"]["success"], -t["overall"]["crashed"], i) for i, t in enumerate(tables)]
     chosen = names[max(ranked)[2]]
     if chosen != FINAL_DIR:
@@ -115,13 +136,12 @@ def _keep_final(run_dir: Path) -> None:
             write_atomically(final / name, partial(shutil.copyfile, run_dir / name))
 
 
-def _validation_table(
-    run_dir: str, files: tuple[str, str | None], flows: int, episodes_per_task: int
-) -> dict[str, dict[str, float]]:
-    """The evaluation table of one candidate on the validation flows, as ``sb3_gccp evaluate`` gives it."""
+def _validation_episodes(
+    run_dir: str, files: tuple[str, str | None], task: str, flows: int, episodes_per_task: int
+) -> list[EpisodeResult]:
+    """One candidate's episodes of one task on the validation flows, as ``sb3_gccp evaluate`` plays them."""
     import torch as th
 
-    from sb3_gccp.evaluation import evaluate, summarize
     from sb3_gccp.hierarchy import load_hierarchy
 
     th.set_num_threads(1)
@@ -132,6 +152,6 @@ def _validation_table(
     env = hierarchy.make_env({})
     try:
         policy = hierarchy.decider_policy(env.config, True, False)
-        return summarize(evaluate(env, policy, TASKS, episodes_per_task, flows, progress=False))
+        return evaluate(env, policy, [task], episodes_per_task, flows, progress=False)
     finally:
         env.close()

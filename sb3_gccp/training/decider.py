@@ -178,7 +178,13 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
     if gccp_callback.choosing:
         assert gccp.choose_on_flows is not None
         print(f"choosing the run's model on validation flows from {gccp.choose_on_flows} (see {CHOICE_FILE})")
-        choice = choose_model(run.dir, gccp.choose_on_flows, gccp.choose_episodes_per_task, workers=n_envs)
+        choice = choose_model(
+            run.dir,
+            gccp.choose_on_flows,
+            gccp.choose_episodes_per_task,
+            workers=n_envs,
+            progress=run.options.progress_bar,
+        )
         if choice is not None:
             chosen = choice["chosen"]
             print(f"the run's model: after {chosen} episodes, chosen on validation flows ({CHOICE_FILE})")
