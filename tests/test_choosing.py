@@ -25,7 +25,7 @@ def _run_folder(tmp_path: Path, names: list[str]) -> Path:
     return run
 
 
-def _stub_tables(monkeypatch: pytest.MonkeyPatch, overall: dict[str, tuple[float, float]]) -> list[str]:
+def _stub_episodes(monkeypatch: pytest.MonkeyPatch, overall: dict[str, tuple[float, float]]) -> list[str]:
     """Each candidate's (success, collision) [%] in every task, by the decider file it is evaluated with;
     returns the candidates evaluated, one entry per task."""
     calls: list[str] = []
@@ -57,7 +57,7 @@ def test_the_candidate_with_the_most_successes_then_the_fewest_collisions_then_t
     tmp_path, monkeypatch, overall, chosen
 ):
     run = _run_folder(tmp_path, ["1000", "1200"])
-    calls = _stub_tables(monkeypatch, overall)
+    calls = _stub_episodes(monkeypatch, overall)
     choice = choosing.choose_model(run, flows=2000, episodes_per_task=100)
     assert choice is not None and choice["chosen"] == chosen
     assert calls == [name for name in ("1000", "1200", "final") for _ in TASKS]
@@ -74,7 +74,7 @@ def test_the_candidate_with_the_most_successes_then_the_fewest_collisions_then_t
 
 def test_without_candidates_the_final_model_stays_and_nothing_is_evaluated(tmp_path, monkeypatch):
     run = _run_folder(tmp_path, [])
-    calls = _stub_tables(monkeypatch, {})
+    calls = _stub_episodes(monkeypatch, {})
     assert choosing.choose_model(run, flows=2000, episodes_per_task=100) is None
     assert calls == [] and not (run / "choice.json").exists()
     assert (run / "decider.zip").read_bytes() == b"final decider"
@@ -87,7 +87,7 @@ def test_candidates_are_ordered_by_their_episodes_not_by_name(tmp_path):
 
 def test_the_validation_episodes_are_counted_on_a_bar(tmp_path, monkeypatch, capsys):
     run = _run_folder(tmp_path, ["1000"])
-    _stub_tables(monkeypatch, {"1000": (94.0, 3.0), "final": (92.0, 0.0)})
+    _stub_episodes(monkeypatch, {"1000": (94.0, 3.0), "final": (92.0, 0.0)})
     choosing.choose_model(run, flows=2000, episodes_per_task=10, progress=True)
     err = capsys.readouterr().err
     assert "validation" in err and "60/60" in err
