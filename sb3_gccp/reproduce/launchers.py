@@ -23,6 +23,7 @@ from typing import Any, Protocol
 from sb3_gccp.reproduce.collect import collect
 from sb3_gccp.reproduce.jobs import Job, finished_job, job_graph, job_summary, run_job
 from sb3_gccp.reproduce.plan import Plan
+from sb3_gccp.training.workers import worker_context
 
 POLL_SECONDS = 1.0
 """How often the jobs in flight are asked whether they finished."""
@@ -161,9 +162,8 @@ class ProcessLauncher:
     def __init__(self, plan_data: Mapping[str, Any], slots: int, logs: Path) -> None:
         self.plan_data, self.logs = plan_data, logs
         self.slots: int | None = slots
-        forkserver = "forkserver" in multiprocessing.get_all_start_methods()
-        self._context: Any = multiprocessing.get_context("forkserver" if forkserver else "spawn")
-        if forkserver:
+        self._context: Any = worker_context()
+        if self._context.get_start_method() == "forkserver":
             self._context.set_forkserver_preload([run_job.__module__])
 
     def output(self, job: Job) -> Path | None:

@@ -14,7 +14,6 @@ candidate's table. Evidence: docs/experiments/2026-12-02-choosing-the-checkpoint
 from __future__ import annotations
 
 import json
-import multiprocessing
 import shutil
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
@@ -30,6 +29,7 @@ from sb3_gccp.constants import CHOICE_FILE, DECIDER_FILE, PREDICTOR_FILE
 from sb3_gccp.evaluation import EpisodeResult, evaluate, summarize
 from sb3_gccp.progress import new_bar
 from sb3_gccp.training.checkpoints import write_atomically
+from sb3_gccp.training.workers import worker_context
 
 CANDIDATES_DIR = "candidates"
 """The candidates' folder in a decider run folder."""
@@ -84,9 +84,7 @@ def choose_model(
     ]
     with new_bar(total=len(jobs) * episodes_per_task, enabled=progress, desc="validation", unit="ep") as bar:
         if workers > 1:
-            methods = multiprocessing.get_all_start_methods()
-            context = multiprocessing.get_context("forkserver" if "forkserver" in methods else None)
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=worker_context()) as pool:
                 futures = [pool.submit(_validation_episodes, *job) for job in jobs]
                 for future in as_completed(futures):
                     future.result()  # a failed job stops the choice here
@@ -97,11 +95,10 @@ def choose_model(
             for job in jobs:
                 episodes.append(_validation_episodes(*job))
                 bar.update(episodes_per_task)
-    per_name = len(TASKS)
-    tables = [
-        summarize([r for task in episodes[i * per_name : (i + 1) * per_name] for r in task])
-        for i in range(len(names))
-    ]
+    by_name: dict[str, list[EpisodeResult]] = {name: [] for name in names}
+    for name, results in zip((name for name in names for _ in TASKS), episodes, strict=True):
+        by_name[name].extend(results)  # in task order, as one ``evaluate`` call plays them
+    tables = [summarize(by_name[name]) for name in names]
     ranked = [(t["overall"]["success"], -t["overall"]["crashed"], i) for i, t in enumerate(tables)]
     chosen = names[max(ranked)[2]]
     if chosen != FINAL_DIR:

@@ -20,7 +20,6 @@ which adds the demonstrations' likelihood to the policy gradient.
 from __future__ import annotations
 
 import itertools
-import multiprocessing
 from collections import deque
 from collections.abc import Callable, Generator, Mapping
 from dataclasses import asdict, dataclass, field, replace
@@ -45,7 +44,7 @@ from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import ScriptedPlanner, SearchPlanner
 from sb3_gccp.frozen import FrozenPolicy
 from sb3_gccp.progress import new_bar
-from sb3_gccp.training.workers import start_worker_server
+from sb3_gccp.training.workers import start_worker_server, worker_context
 
 EXPERTS = {"scripted": ScriptedPlanner, "search": SearchPlanner}
 """The planners the planner stage can clone, by the name the ``imitation.expert`` key takes."""
@@ -338,8 +337,7 @@ def _episodes(
         finally:
             labeller.close()
         return
-    methods = multiprocessing.get_all_start_methods()
-    context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    context = worker_context()
     initargs = (world, expert, dict(expert_kwargs), driver, th.get_num_threads())
     start_worker_server(__name__)  # its processes import this module
     with context.Pool(workers, _start_worker, initargs) as pool:

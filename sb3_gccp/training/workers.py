@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
+from multiprocessing.context import BaseContext
 
 
 def start_worker_server(*modules: str) -> None:
@@ -16,3 +17,10 @@ def start_worker_server(*modules: str) -> None:
 
         forkserver.set_forkserver_preload(["__main__", *modules])  # __main__: multiprocessing's default
         forkserver.ensure_running()
+
+
+def worker_context() -> BaseContext:
+    """The start method of worker processes: ``forkserver`` (they do not inherit this process's torch
+    state and threads), ``spawn`` where there is none."""
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
