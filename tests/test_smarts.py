@@ -76,23 +76,48 @@ def neighbours(world) -> list[tuple[str, tuple[float, ...], float]]:
     return sorted((s.id, tuple(np.round(s.position, 6)), round(float(s.speed), 6)) for s in states)
 
 
-@needs_smarts
-def test_an_episode_on_a_scenario_built_on_first_use_is_the_episode_of_a_built_one(tmp_path, monkeypatch):
+def left_turn_after_20_steps() -> list[tuple[str, tuple[float, ...], float]]:
+    """The SUMO vehicles the ego sees after 20 steps of a left turn on flow 0 or 1 (generator seed 4)."""
     from gccp_envs.smarts.world import SmartsWorld
 
+    world = SmartsWorld(IntersectionConfig(task="left", smarts_flows=2))
+    try:
+        world.reset(np.random.default_rng(4))
+        for _ in range(20):
+            world.step(0)
+        return neighbours(world)
+    finally:
+        world.close()
+
+
+@needs_smarts
+def test_an_episode_on_a_scenario_built_on_first_use_is_the_episode_of_a_built_one(tmp_path, monkeypatch):
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path / "sumo"))  # nothing built yet
-    seen = []
-    for _ in ("building", "built"):
-        world = SmartsWorld(IntersectionConfig(task="left", smarts_flows=2))
-        try:
-            world.reset(np.random.default_rng(4))
-            for _ in range(20):
-                world.step(0)
-            seen.append(neighbours(world))
-        finally:
-            world.close()
+    seen = [left_turn_after_20_steps() for _ in ("building", "built")]
     assert len(seen[0]) > 0
     assert seen[0] == seen[1]  # the build drew nothing from the random state SUMO's seed comes from
+
+
+@needs_smarts
+def test_a_sumo_start_that_smarts_retries_runs_the_same_flow(monkeypatch):
+    # On a busy machine SUMO can take over TraCI's 5 s to start; SMARTS then starts it again.
+    from smarts.core.utils.sumo_utils import TraciConn, traci
+
+    connect = TraciConn.connect
+    failed = []
+
+    def too_late_once(self, *args, **kwargs):
+        if not failed:
+            failed.append(self)
+            raise traci.exceptions.FatalTraCIError("could not connect in time")
+        return connect(self, *args, **kwargs)
+
+    seen = [left_turn_after_20_steps()]
+    monkeypatch.setattr(TraciConn, "connect", too_late_once)
+    seen.append(left_turn_after_20_steps())
+    assert len(failed) == 1 and len(seen[0]) > 0
+    assert seen[0] == seen[1]
+    assert sumo_children() == []
 
 
 @needs_smarts

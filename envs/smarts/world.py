@@ -4,7 +4,8 @@
   (:mod:`gccp_envs.smarts.scenario`). ``reset`` draws the task, the traffic variation (flow ``k`` of
   ``smarts_flows``), SUMO's seed and the ego's start from the episode's generator, as our world draws them;
   SMARTS runs the traffic for ``warmup_time`` and puts the ego in at its start; with ``smarts_clear_start``
-  SUMO's vehicles within 15 m of it are taken off the road, as our world starts an episode.
+  SUMO's vehicles within 15 m of it are taken off the road, as our world starts an episode. A SUMO that
+  SMARTS has to start again runs the same flow (:class:`SeededSumoTrafficSimulation`).
 - **The ego** moves by SMARTS's ``RelativeTargetPose``: our action's pose change over 0.1 s
   (:class:`~gccp_envs.action.EgoMotion`), turned into SMARTS's frame. Its pose is read back from SMARTS;
   its speed is the one our kinematics gave, as in our world.
@@ -67,6 +68,31 @@ ROUTE_LOOKAHEAD = 10
 HEADING_WEIGHT = 2.0
 """Metres of lateral offset one radian of heading difference counts as, when a vehicle's lane path is
 chosen (so that a car on the junction's crossing lanes gets the path it drives along)."""
+
+
+class SeededSumoTrafficSimulation(SumoTrafficSimulation):
+    """SMARTS's SUMO traffic, whose SUMO runs the same flow when SMARTS has to start it again.
+
+    SMARTS starts SUMO with a ``--seed`` drawn from Python's ``random``. When TraCI does not connect within
+    5 s (SUMO slow to start on a busy machine), SMARTS starts SUMO again with the next draw: another flow,
+    and every later draw of the episode shifted. Here every start or reload within one ``setup`` draws from
+    the state ``random`` had when it began, so a retried start runs the flow of a first-time one; a start
+    that connects at once draws as before.
+    """
+
+    _random_state: Any = None
+
+    def setup(self, scenario: Any) -> Any:
+        self._random_state = random.getstate()
+        try:
+            return super().setup(scenario)
+        finally:
+            self._random_state = None
+
+    def _base_sumo_load_params(self) -> list[str]:
+        if self._random_state is not None:
+            random.setstate(self._random_state)
+        return list(super()._base_sumo_load_params())
 
 
 def smarts_heading(heading: FloatArray | float) -> FloatArray:
@@ -198,7 +224,7 @@ class SmartsWorld(IntersectionWorld):
             self._log_dir = tempfile.mkdtemp(prefix="gccp-smarts-")
             self._smarts = SMARTS(
                 {EGO_ID: interface},
-                traffic_sims=[SumoTrafficSimulation(headless=True, time_resolution=DT)],
+                traffic_sims=[SeededSumoTrafficSimulation(headless=True, time_resolution=DT)],
                 envision=None,
                 fixed_timestep_sec=DT,
             )
