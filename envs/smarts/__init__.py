@@ -4,7 +4,8 @@
   the ego's mission), generated with ``smarts.sstudio`` into a cache folder on first use;
 - :mod:`gccp_envs.smarts.fixes`: the two repairs SMARTS 2.0.1 needs, each applied only while needed;
 - :mod:`gccp_envs.smarts.world`: :class:`~gccp_envs.smarts.world.SmartsWorld`, the world the envs read,
-  stepped by SMARTS: the ego moved by ``RelativeTargetPose``, the outcomes from SMARTS's events.
+  stepped by SMARTS: the ego moved by ``RelativeTargetPose``, the outcomes from SMARTS's events, and SUMO
+  started with the same seed when SMARTS has to start it again.
 
 SMARTS comes with the ``smarts`` extra; this module imports none of it, so that the config can say in one
 line what is missing.
