@@ -340,12 +340,18 @@ def _episodes(
     context = worker_context()
     initargs = (world, expert, dict(expert_kwargs), driver, th.get_num_threads())
     start_worker_server(__name__)  # its processes import this module
-    with context.Pool(workers, _start_worker, initargs) as pool:
+    pool = context.Pool(workers, _start_worker, initargs)
+    try:
         ahead = 2 * workers  # episodes asked for beyond the one awaited: no process waits for work
         pending = deque(pool.apply_async(_worker_episode, (seed + k,)) for k in range(ahead))
         for k in itertools.count(ahead):
             yield pending.popleft().get()
             pending.append(pool.apply_async(_worker_episode, (seed + k,)))
+    finally:
+        # Let the episodes asked for ahead finish: Pool.terminate() with tasks in flight (what the
+        # pool's `with` does) can hang for good in multiprocessing's own shutdown.
+        pool.close()
+        pool.join()
 
 
 def collect_expert(
