@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -240,6 +244,53 @@ def test_two_labelling_processes_give_the_same_data_as_one():
     np.testing.assert_array_equal(two.actions, one.actions)
     np.testing.assert_array_equal(two.returns, one.returns)
     assert two.agreement == one.agreement < 1.0  # the untrained policy drove, not the expert
+
+
+LABELLING_UNTIL_INTERRUPTED = """
+import signal
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal: Ctrl-C is not ignored
+from gccp_envs.config import IntersectionConfig
+from sb3_gccp.training.imitation import collect_expert
+if __name__ == "__main__":
+    try:
+        collect_expert(IntersectionConfig(spawn_probability=0.0, duration=4.0), 20_000, seed=0, workers=2)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+"""
+
+
+def _processes_in_group(group: int) -> int:
+    count = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the process ended while listed
+            continue
+        count += int(fields[2]) == group  # the fields after the name: state, ppid, pgrp
+    return count
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="counts processes in /proc")
+def test_ctrl_c_while_two_processes_label_ends_every_process(tmp_path):
+    script = tmp_path / "label.py"
+    script.write_text(LABELLING_UNTIL_INTERRUPTED)
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while _processes_in_group(process.pid) < 4:  # the process, the fork server and its two workers
+            assert process.poll() is None and time.monotonic() < deadline, "the workers never started"
+            time.sleep(0.1)
+        time.sleep(1.0)  # inside the episodes
+        os.killpg(process.pid, signal.SIGINT)  # Ctrl-C reaches the whole group
+        out, _ = process.communicate(timeout=30)  # a multiprocessing.Pool waited here for good
+        assert out.decode().strip() == "interrupted"
+        deadline = time.monotonic() + 10
+        while _processes_in_group(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _processes_in_group(process.pid) == 0, "a worker was left behind"
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
 
 
 def test_expert_data_written_into_given_rows_are_the_same_and_leave_the_other_rows_alone():

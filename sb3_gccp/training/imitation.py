@@ -22,6 +22,7 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from collections.abc import Callable, Generator, Mapping
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -337,21 +338,24 @@ def _episodes(
         finally:
             labeller.close()
         return
-    context = worker_context()
     initargs = (world, expert, dict(expert_kwargs), driver, th.get_num_threads())
     start_worker_server(__name__)  # its processes import this module
-    pool = context.Pool(workers, _start_worker, initargs)
+    # An executor, not a multiprocessing.Pool: a Pool whose worker died (Ctrl-C reaches the workers too)
+    # waits for the lost episode for ever in join(), and its terminate() can block on the lock that an
+    # idle worker holds. The executor notices a dead worker and stops.
+    executor = ProcessPoolExecutor(workers, worker_context(), _start_worker, initargs)
+    finished = False
     try:
         ahead = 2 * workers  # episodes asked for beyond the one awaited: no process waits for work
-        pending = deque(pool.apply_async(_worker_episode, (seed + k,)) for k in range(ahead))
+        pending = deque(executor.submit(_worker_episode, seed + k) for k in range(ahead))
         for k in itertools.count(ahead):
-            yield pending.popleft().get()
-            pending.append(pool.apply_async(_worker_episode, (seed + k,)))
+            yield pending.popleft().result()
+            pending.append(executor.submit(_worker_episode, seed + k))
+    except GeneratorExit:
+        finished = True  # the consumer has its episodes: let the workers end the ones they are on
+        raise
     finally:
-        # Let the episodes asked for ahead finish: Pool.terminate() with tasks in flight (what the
-        # pool's `with` does) can hang for good in multiprocessing's own shutdown.
-        pool.close()
-        pool.join()
+        executor.shutdown(wait=finished, cancel_futures=True)
 
 
 def collect_expert(
