@@ -125,3 +125,45 @@ def test_candidates_are_cached_per_step_and_refreshed_by_step(make_world):
     world.step(0)
     s = on_path(layout, path, world.subgoal_candidates()[:4])
     np.testing.assert_allclose(s, [60.0, 65.0, 70.0, 75.0], atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def lane_change_world():
+    world = IntersectionWorld(
+        IntersectionConfig(spawn_probability=0.0, task="straight", lane_change_distance=15.0)
+    )
+    world.reset(np.random.default_rng(0), "straight")
+    return world
+
+
+def test_lane_change_candidates_lie_far_enough_ahead_and_before_the_stop_line(
+    lane_change_world, world, layout
+):
+    """``lane_change_distance``: on the other lane's path, candidates 15 m ahead of the ego at least and
+    not past the stop line (70 m); the ego's own path keeps its four."""
+    cands = candidates_at(lane_change_world, "straight", 2, 50.0)
+    np.testing.assert_allclose(on_path(layout, 2, cands[:4]), [50.0, 55.0, 60.0, 65.0], atol=1e-3)
+    np.testing.assert_allclose(on_path(layout, 1, cands[4:5]), [65.0], atol=1e-3)
+    np.testing.assert_array_equal(cands[5:], np.repeat(cands[3][None], 7, 0))  # padded
+    # Without the key the other path has four, the last past the stop line.
+    np.testing.assert_allclose(
+        on_path(layout, 1, candidates_at(world, "straight", 2, 50.0)[4:8]),
+        [50.0, 55.0, 60.0, 65.0],
+        atol=1e-3,
+    )
+    near_the_line = candidates_at(lane_change_world, "straight", 2, 58.0)
+    np.testing.assert_allclose(on_path(layout, 2, near_the_line[:4]), [60.0, 65.0, 70.0, 75.0], atol=1e-3)
+    assert len(np.unique(near_the_line, axis=0)) == 4  # none on path 1: 73 m is past the line
+
+
+def test_lane_change_limit_leaves_a_stranded_ego_its_candidates(lane_change_world, layout):
+    """A left turn with the ego on the outer lane 5 m before the stop line: the limit would leave no
+    candidate on the turn's path (the only route), so it is not applied."""
+    cands = candidates_at(lane_change_world, "left", 2, 65.0)
+    np.testing.assert_allclose(on_path(layout, 0, cands[:4]), [65.0, 70.0, 75.0, 80.0], atol=1e-3)
+
+
+@pytest.mark.parametrize("value", [-1.0, 51.0])
+def test_lane_change_distance_out_of_range_is_refused(value):
+    with pytest.raises(ValueError, match="lane_change_distance"):
+        IntersectionConfig(lane_change_distance=value)
