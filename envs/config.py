@@ -92,8 +92,8 @@ def drop_retired_keys(values: Mapping[str, Any], retired: Mapping[str, Any], wha
     return kept
 
 
-RETIRED_WORLD_KEYS: dict[str, Any] = {"r_fail": 0.0, "r_junction_stand": 0.0}
-"""World keys of decider rewards that were tried, not adopted and removed (docs/experiments/), each with
+RETIRED_WORLD_KEYS: dict[str, Any] = {"r_fail": 0.0, "r_junction_stand": 0.0, "lane_change_distance": 0.0}
+"""World keys of the decider's world that were tried, not adopted and removed (docs/experiments/), each with
 the value under which it changed nothing."""
 
 
@@ -275,13 +275,6 @@ class IntersectionConfig:
     """Spacing [m] of subgoal candidates along a route (paper: 5 m)."""
     subgoal_range: float = 20.0
     """Length [m] of the window of candidates along a route (paper: 20 m)."""
-    lane_change_distance: float = 0.0
-    """Metres a lane change takes (0: no limit). On a route whose lane the ego is not on (more than half a
-    lane width off it) a candidate lies at least this far ahead of the ego and not past the stop line, so
-    the ego changes lanes on the approach, not by swerving at speed onto the other lane's path inside the
-    junction, and crosses the junction on the lane it entered it on, as SUMO's drivers do. Two arcs at the
-    slow turn's curvature move the ego a lane width over 13.3 m (ours;
-    docs/experiments/2026-12-03-lane-changes-into-the-junction.md)."""
     subgoal_reach_radius: float = 2.0
     """A subgoal counts as reached within this distance [m] ..."""
     subgoal_reach_heading: float = 0.5
@@ -489,7 +482,6 @@ def _validate(config: IntersectionConfig) -> None:
     if config.prediction_horizon > config.decision_period:
         raise ValueError("prediction_horizon (T_f) must not exceed decision_period (T_m)")
     require_in_range("mask_drive_on", config.mask_drive_on, 0.0, 30.0, " m (0: off)")
-    require_in_range("lane_change_distance", config.lane_change_distance, 0.0, 50.0, " m (0: off)")
     require_in_range("rear_axle_offset", config.rear_axle_offset, 0.0, 2.5, " m (the box's rear half)")
     if config.quick_turn_curvature < config.slow_turn_curvature:
         raise ValueError("quick_turn_curvature must be at least slow_turn_curvature")

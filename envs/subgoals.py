@@ -28,56 +28,26 @@ class SubgoalSampler:
         self.config = config
         self.per_route = math.ceil(config.num_subgoals / config.num_routes)
 
-    def sample(
-        self,
-        routes: list[int],
-        route_s: FloatArray,
-        task_goal: FloatArray,
-        route_limits: FloatArray | None = None,
-    ) -> FloatArray:
+    def sample(self, routes: list[int], route_s: FloatArray, task_goal: FloatArray) -> FloatArray:
         """Candidates for an ego at arc lengths ``route_s`` on its ``routes``.
 
         :param routes: path indices of the ego's routes, best first
         :param route_s: the ego's arc length on each route
         :param task_goal: the task goal (x, y, heading)
-        :param route_limits: (R, 2) the nearest and farthest arc length of a candidate on each route
-            (default: no limit but the path's end); if they leave no candidate on any route, they are
-            ignored
         :return: (N, 3) world poses
         """
-        if route_limits is not None:
-            kept = self._sample(routes, route_s, task_goal, route_limits)
-            if kept is not None:
-                return kept
-        candidates = self._sample(routes, route_s, task_goal)
-        assert candidates is not None
-        return candidates
-
-    def _sample(
-        self,
-        routes: list[int],
-        route_s: FloatArray,
-        task_goal: FloatArray,
-        route_limits: FloatArray | None = None,
-    ) -> FloatArray | None:
-        """:meth:`sample`, or None if ``route_limits`` leave no candidate."""
         cfg, paths = self.config, self.layout.paths
-        limits = np.full((len(routes), 2), [-np.inf, np.inf]) if route_limits is None else route_limits
         poses = []
-        for path, s, (near, far) in zip(routes, route_s, limits, strict=True):
+        for path, s in zip(routes, route_s, strict=True):
             first = math.ceil((s - cfg.subgoal_spacing / 2.0 - self.layout.stop_s) / cfg.subgoal_spacing)
             lattice = self.layout.stop_s + cfg.subgoal_spacing * (first + np.arange(self.per_route))
             lattice = lattice[
                 (lattice < s - cfg.subgoal_spacing / 2.0 + cfg.subgoal_range)
                 & (lattice <= paths.lengths[path])
-                & (lattice >= near)
-                & (lattice <= far)
             ]
             poses.append(paths.pose_at(np.full(len(lattice), path), lattice))
         candidates = np.concatenate([*poses, np.empty((0, 3))])[: cfg.num_subgoals]
         if not len(candidates):
-            if route_limits is not None:
-                return None
             candidates = task_goal[None]
         missing = cfg.num_subgoals - len(candidates)
         if missing:

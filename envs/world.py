@@ -356,19 +356,8 @@ class IntersectionWorld:
         """The N subgoal candidates (x, y, heading) in world coordinates, cached per step."""
         if self._candidates is None:
             routes, s = self.ego_routes()
-            limits = self._lane_change_limits(routes, s) if self.config.lane_change_distance else None
-            self._candidates = self.sampler.sample(routes, s, self.task_goal, limits)
+            self._candidates = self.sampler.sample(routes, s, self.task_goal)
         return self._candidates
-
-    def _lane_change_limits(self, routes: list[int], s: FloatArray) -> FloatArray:
-        """For ``lane_change_distance``: (R, 2) the nearest and farthest arc length of a candidate on each
-        route; on a route whose lane the ego is more than half a lane width off, from
-        ``lane_change_distance`` ahead of the ego to the stop line, elsewhere unlimited."""
-        _, d = self.layout.paths.project(np.array(routes), np.array([self.ego.x, self.ego.y]))
-        off = np.abs(d) > self.config.lane_width / 2.0
-        near = np.where(off, s + self.config.lane_change_distance, -np.inf)
-        far = np.where(off, self.layout.stop_s, np.inf)
-        return np.stack([near, far], axis=1)
 
     def neighbours(self) -> NDArray[np.int64]:
         """Slots of the N_s nearest other vehicles within the observation radius, nearest first."""

@@ -48,13 +48,14 @@ def test_from_dict_names_unknown_keys_with_close_matches():
 
 
 def test_a_removed_key_loads_only_at_the_value_that_changed_nothing():
-    assert IntersectionConfig.from_dict({"r_fail": 0.0, "r_junction_stand": 0, "duration": 20.0}) == (
-        IntersectionConfig(duration=20.0)
-    )
+    loaded = {"r_fail": 0.0, "r_junction_stand": 0, "lane_change_distance": 0.0, "duration": 20.0}
+    assert IntersectionConfig.from_dict(loaded) == IntersectionConfig(duration=20.0)
     with pytest.raises(
         ValueError, match=r"^intersection config key 'r_fail' was removed; a run that set it to -3\.0"
     ):
         IntersectionConfig.from_dict({"r_fail": -3.0})
+    with pytest.raises(ValueError, match=r"^intersection config key 'lane_change_distance' was removed"):
+        IntersectionConfig.from_dict({"lane_change_distance": 15.0})
 
 
 def test_replace_rejects_unknown_keys_like_from_dict():
