@@ -10,14 +10,7 @@ from test_predictor import T_F, G, V, scene, tiny_predictor
 from torch import nn
 
 from gccp_envs.config import DT
-from sb3_gccp.gccp.mask import (
-    GCCPMask,
-    ego_route_polylines,
-    extrapolate,
-    extrapolate_along_route,
-    extrapolate_braking,
-    yielding,
-)
+from sb3_gccp.gccp.mask import GCCPMask, extrapolate, extrapolate_braking, yielding
 from sb3_gccp.gccp.predictor import ConstantVelocityPredictor
 from sb3_gccp.gccp.settings import GCCPCheck
 
@@ -226,74 +219,3 @@ def test_mask_on_a_decider_env_observation():
     env.unwrapped.set_mask_fn(mask)
     allowed = env.unwrapped.action_masks()
     assert allowed.shape == (G,) and allowed.dtype == bool and allowed.any()
-
-
-def _quarter_circle(radius=12.0, points=51):
-    """A left turn of ``radius`` from the ego's origin, as the polyline of poses of a route."""
-    angle = np.linspace(0.0, np.pi / 2.0, points)
-    return np.stack([radius * np.sin(angle), radius * (1.0 - np.cos(angle)), angle], -1)
-
-
-def test_extrapolate_along_route_follows_the_turn_the_straight_one_leaves():
-    radius, line = 12.0, _quarter_circle()
-    # The ego predicted 0.8 m per step along the first 4 m of the turn.
-    angle = np.arange(1, 6) * 0.8 / radius
-    future = np.stack([radius * np.sin(angle), radius * (1 - np.cos(angle)), angle], -1)[None]
-    along = extrapolate_along_route(future, 10, [line], reach=2.0)
-    straight = extrapolate(future, 10)
-    np.testing.assert_array_equal(along[:, :5], future)
-    centre = np.array([0.0, radius])
-    gap_along = np.abs(np.hypot(*(along[0, 5:, :2] - centre).T) - radius)
-    gap_straight = np.abs(np.hypot(*(straight[0, 5:, :2] - centre).T) - radius)
-    assert gap_along.max() < 0.05 and gap_straight.max() > 1.0  # on the arc; the straight one leaves it
-    steps = np.hypot(*np.diff(along[0, 4:, :2], axis=0).T)
-    np.testing.assert_allclose(steps, 0.8, atol=0.02)  # at the last predicted speed
-    assert np.all(np.diff(along[0, 5:, 2]) > 0)  # turning left
-
-
-def test_extrapolate_along_route_goes_straight_far_from_every_route_or_past_its_end():
-    future = np.zeros((2, 5, 3))
-    future[0, :, 0] = np.arange(1, 6) * 0.8
-    future[0, :, 1] = 5.0  # 5 m beside the route
-    future[1, :, 0] = np.arange(1, 6) * 0.8  # on the route, which ends 2 m after its last step
-    line = np.stack([np.linspace(0.0, 6.0, 7), np.zeros(7), np.zeros(7)], -1)
-    np.testing.assert_array_equal(
-        extrapolate_along_route(future, 10, [line], reach=2.0), extrapolate(future, 10)
-    )
-
-
-def test_ego_route_polylines_read_the_observation():
-    env = gym.make("GCCPDecider-v0", task="left", spawn_probability=0.0, ego_lane="task")
-    obs, _ = env.reset(seed=0)
-    lines = ego_route_polylines(obs)
-    assert len(lines) == 1 and lines[0].shape == (51, 3)  # a left turn has one route, 50 points ahead
-    np.testing.assert_allclose(np.hypot(*np.diff(lines[0][:, :2], axis=0).T), 1.0, atol=1e-3)
-    assert np.hypot(*lines[0][0, :2]) < 0.5  # starts at the ego, on its lane
-
-
-def test_mask_checks_a_turning_ego_on_its_turn():
-    """A car stands on the turn, off the straight line: only the check along the route sees it."""
-    radius, line = 12.0, _quarter_circle()
-
-    class AlongTheTurn(nn.Module):
-        def forward(self, obs, goals):
-            angle = th.arange(1, T_F + 1, dtype=th.float32) * 0.8 / radius
-            ego = th.stack([radius * th.sin(angle), radius * (1 - th.cos(angle)), angle], -1)
-            out = th.zeros(1, G, V, T_F, 3)
-            out[:, :, 0] = ego
-            out[:, :, 1] = th.tensor([10.84, 10.13, 1.4])  # standing, 1 m inside the arc
-            return out
-
-    obs = scene([(0.0, 0.0, 0.0, 8.0), (10.84, 10.13, 1.4, 0.0)])
-    routes = np.zeros_like(obs["routes"])
-    mask_ = np.zeros_like(obs["routes_mask"])
-    routes[0, 0, :, 0:3], routes[0, 0, :, 3:6] = line[:-1], line[1:]
-    mask_[0, 0] = 1.0
-    obs = {**obs, "routes": routes, "routes_mask": mask_}
-    assert GCCPMask(AlongTheTurn(), GCCPCheck(extrapolate_steps=10))(obs).all()
-    assert not GCCPMask(AlongTheTurn(), GCCPCheck(extrapolate_steps=10, extrapolate_ego="route"))(obs).any()
-
-
-def test_extrapolate_ego_must_be_known():
-    with pytest.raises(ValueError, match="mask_extrapolate_ego"):
-        GCCPCheck.from_dict({"mask_extrapolate_ego": "curved"})

@@ -76,10 +76,6 @@ class GCCPMask:
         (default: our world's cars; :meth:`GCCPCheck.make_mask` gives the world's)
     """
 
-    ROUTE_REACH = 2.0
-    """With ``extrapolate_ego: route``, the ego goes on along a route only if its last predicted pose lies
-    within this distance [m] of it (half a lane), else straight on."""
-
     def __init__(
         self, predictor: nn.Module, check: GCCPCheck | None = None, sizes: VehicleSizes = BUILTIN_SIZES
     ) -> None:
@@ -126,10 +122,6 @@ class GCCPMask:
         future = extrapolate(predicted, self.extrapolate_steps)
         if self.ego_deceleration is not None and self.extrapolate_steps:
             future[:, 0] = extrapolate_braking(predicted[:, 0], self.extrapolate_steps, self.ego_deceleration)
-        elif self.check.extrapolate_ego == "route" and self.extrapolate_steps:
-            future[:, 0] = extrapolate_along_route(
-                predicted[:, 0], self.extrapolate_steps, ego_route_polylines(obs), self.ROUTE_REACH
-            )
         waiting = np.zeros_like(present)
         if self.yield_checker is not None:
             waiting = yielding(obs, self.sizes) & present
@@ -180,63 +172,6 @@ def extrapolate(future: np.ndarray, steps: int) -> np.ndarray:
     last, step = _last_step(future)
     k = np.arange(1, steps + 1, dtype=future.dtype)[:, None]
     return _append(future, last, last[..., :2] + k * step)
-
-
-def ego_route_polylines(obs: Mapping[str, np.ndarray]) -> list[np.ndarray]:
-    """The ego's routes in one decider observation as polylines (P + 1, 3) of poses (x, y, heading) in the
-    ego frame, from the route vectors' start and end points; routes with fewer than two points left out."""
-    routes = np.asarray(obs["routes"])[0]  # (N_r, N_p, 8): start pose, end pose, ids
-    valid = np.asarray(obs["routes_mask"])[0] > 0
-    return [
-        np.concatenate([routes[r, ok, 0:3][:1], routes[r, ok, 3:6]]).astype(np.float64)
-        for r, ok in enumerate(valid)
-        if ok.sum() >= 2
-    ]
-
-
-def extrapolate_along_route(
-    future: np.ndarray, steps: int, polylines: list[np.ndarray], reach: float
-) -> np.ndarray:
-    """Predicted ego poses followed by ``steps`` more along the route nearest the last predicted pose, at
-    the speed of the last predicted step (as in :func:`extrapolate`) and the route's heading; straight on
-    (:func:`extrapolate`) where no route lies within ``reach`` or it ends first.
-
-    :param future: (N, T_f, 3) the ego's predicted poses under each candidate
-    :param steps: extra steps
-    :param polylines: the ego's routes (:func:`ego_route_polylines`)
-    :param reach: [m]
-    :return: (N, T_f + steps, 3)
-    """
-    out = extrapolate(future, steps)
-    if not polylines:
-        return out
-    last, step = _last_step(future)
-    speed = np.hypot(step[:, 0, 0], step[:, 0, 1])  # m per step
-    travel = np.arange(1, steps + 1) * speed[:, None]  # (N, steps)
-    for c in range(len(future)):
-        nearest = [_project(line[:, :2], last[c, 0, :2]) for line in polylines]
-        route = int(np.argmin([gap for gap, _, _ in nearest]))
-        gap, arc, start = nearest[route]
-        line, s = polylines[route], start + travel[c]
-        if gap > reach or s[-1] > arc[-1]:
-            continue
-        heading = np.unwrap(line[:, 2])
-        out[c, -steps:] = np.stack(
-            [np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1]), np.interp(s, arc, heading)], -1
-        )
-    return out
-
-
-def _project(line: np.ndarray, point: np.ndarray) -> tuple[float, np.ndarray, float]:
-    """``point``'s distance to the polyline ``line`` (P, 2), the polyline's arc length at each vertex (P,),
-    and the arc length of the point's projection."""
-    start, seg = line[:-1], np.diff(line, axis=0)
-    length = np.hypot(seg[:, 0], seg[:, 1])
-    t = np.clip(((point - start) * seg).sum(-1) / np.maximum(length**2, 1e-12), 0.0, 1.0)
-    gaps = np.hypot(*(start + t[:, None] * seg - point).T)
-    k = int(np.argmin(gaps))
-    arc = np.concatenate([[0.0], np.cumsum(length)])
-    return float(gaps[k]), arc, float(arc[k] + t[k] * length[k])
 
 
 def extrapolate_braking(future: np.ndarray, steps: int, deceleration: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The GCCP module's settings: the collision check (:class:`GCCPCheck`) and the decider stage's
 schedule and predictor training (:class:`GCCPSettings`, the ``gccp`` map of a zoo entry).
 
-:class:`GCCPCheck` is the one home of the seven ``mask_*`` settings: their defaults, their validation,
+:class:`GCCPCheck` is the one home of the six ``mask_*`` settings: their defaults, their validation,
 their YAML form (the same keys in a zoo entry's ``gccp`` map, in ``hierarchy.yml`` and after
 ``--mask``) and the mask they build (:class:`~sb3_gccp.gccp.mask.GCCPMask` takes one). This module
 imports no torch, so that the command line can name the keys without loading it.
@@ -39,9 +39,6 @@ VEHICLE_SIZES = ("simulator", "builtin")
 """Whose car sizes the check's boxes have: the simulator's (5 x 2 m in ours, 3.68 x 1.47 m in SMARTS),
 or our world's 5 x 2 m in any simulator."""
 
-EGO_EXTRAPOLATIONS = ("straight", "route")
-"""How the check extrapolates the ego beyond T_f (``GCCPCheck.extrapolate_ego``)."""
-
 
 @dataclass(frozen=True)
 class GCCPCheck:
@@ -66,11 +63,6 @@ class GCCPCheck:
     """When no candidate passes the check, not even the hold, check them again with this box margin [m]
     (0: the paper's boxes); null: hold. With a margin every candidate can fail beside a standing car that
     waits for the ego, and holding then waits for ever."""
-    extrapolate_ego: str = "straight"
-    """How the ego goes on in the extra steps: 'straight', at the heading of its last predicted step, like
-    the neighbours; or 'route', along the ego's route nearest its last predicted pose (from the
-    observation's routes), at the speed of its last predicted step, so that a turning ego is checked on
-    the turn it will drive (ours; docs/experiments/2026-12-03-the-ego-checked-along-its-route.md)."""
     vehicle_sizes: str = "simulator"
     """The boxes' sizes before the margin: 'simulator', the ego's and the traffic's in the world checked
     (``gccp_envs.world.vehicle_sizes``), or 'builtin', 5 x 2 m for every vehicle, as in our world (what
@@ -101,7 +93,6 @@ class GCCPCheck:
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
             None if fallback is None else float(fallback),
-            values.get("mask_extrapolate_ego", cls.extrapolate_ego),
             values.get("mask_vehicle_sizes", cls.vehicle_sizes),
         )
 
@@ -126,7 +117,7 @@ class GCCPCheck:
 
 CHECK_KEYS = tuple(CHECK_PREFIX + f.name for f in dataclasses.fields(GCCPCheck))
 """The YAML keys of a :class:`GCCPCheck`, in order: ``mask_margin``, ``mask_extrapolate_steps``, ..."""
-RETIRED_CHECK_KEYS: dict[str, Any] = {"mask_standing_escape": False}
+RETIRED_CHECK_KEYS: dict[str, Any] = {"mask_standing_escape": False, "mask_extrapolate_ego": "straight"}
 """Check keys that were tried, not adopted and removed (docs/experiments/), each with the value under which
 it changed nothing."""
 
@@ -143,10 +134,6 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     for key in ("mask_yield_margin", "mask_fallback_margin"):
         if values.get(key) is not None:
             require_non_negative(f"{where}{key}", values[key])
-    along = values.get("mask_extrapolate_ego", GCCPCheck.extrapolate_ego)
-    if along not in EGO_EXTRAPOLATIONS:
-        expected = ", ".join(EGO_EXTRAPOLATIONS)
-        raise ValueError(f"{where}mask_extrapolate_ego must be one of {expected}, got {along!r}")
     sizes = values.get("mask_vehicle_sizes", GCCPCheck.vehicle_sizes)
     if sizes not in VEHICLE_SIZES:
         expected = ", ".join(VEHICLE_SIZES)
