@@ -91,16 +91,3 @@ def test_the_validation_episodes_are_counted_on_a_bar(tmp_path, monkeypatch, cap
     choosing.choose_model(run, flows=2000, episodes_per_task=10, progress=True)
     err = capsys.readouterr().err
     assert "validation" in err and "60/60" in err
-
-
-@pytest.mark.parametrize(
-    ("weight", "chosen"),
-    [(0.0, "1000"), (1.0, "1200"), (0.2, "1000"), (0.5, "1200")],
-)
-def test_a_collision_weight_ranks_by_success_less_that_many_collisions(tmp_path, monkeypatch, weight, chosen):
-    # at 0.5 the two tie (92.5), and the one with fewer collisions is taken
-    run = _run_folder(tmp_path, ["1000", "1200"])
-    _stub_episodes(monkeypatch, {"1000": (94.0, 3.0), "1200": (93.0, 1.0), "final": (90.0, 0.0)})
-    choice = choosing.choose_model(run, flows=2000, episodes_per_task=100, collision_weight=weight)
-    assert choice is not None and choice["chosen"] == chosen
-    assert (run / "decider.zip").read_bytes() == f"decider {chosen}".encode()

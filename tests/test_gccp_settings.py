@@ -27,10 +27,6 @@ OURS = IntersectionConfig()
         ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
         ({"mask_margin": -0.5}, "gccp.mask_margin must be a non-negative number, got -0.5"),
         (
-            {"choose_collision_weight": -1},
-            "gccp.choose_collision_weight must be a non-negative number, got -1",
-        ),
-        (
             {"mask_extrapolate_steps": 1.5},
             "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
         ),

@@ -176,10 +176,6 @@ class GCCPSettings:
     later). None: the final model."""
     choose_episodes_per_task: int = 100
     """Validation flows per task of each candidate."""
-    choose_collision_weight: float = 0.0
-    """The choice ranks the candidates by their success minus this many times their collision rate on the
-    validation flows (then fewer collisions, then the later); 0: success alone, 1: a collision counts as a
-    second failure."""
     choose_every_episodes: int = 200
     """Episodes between two candidates."""
     choose_from_episodes: int = 1000
@@ -212,7 +208,6 @@ class GCCPSettings:
         if self.choose_on_flows is not None:
             require_int("gccp.choose_on_flows", self.choose_on_flows, minimum=0)
         require_positive("gccp.predictor_learning_rate", self.predictor_learning_rate)
-        require_non_negative("gccp.choose_collision_weight", self.choose_collision_weight)
         PredictorConfig.from_dict(self.predictor_kwargs)
 
     @classmethod

@@ -6,11 +6,9 @@ During training the GCCP callback saves candidates, each the decider with the pr
 
 After training every candidate and the final model play the validation flows (``gccp.choose_on_flows``,
 traffic seeds kept apart from the test flows 0-49 and the held-out flows 1000-1199 of the docs), and the
-run's ``decider.zip`` and ``predictor.pt`` become those of the one with the highest success there less
-``gccp.choose_collision_weight`` times its collision rate (then fewer collisions, then the later). The
-final model stays as ``final/``; ``choice.json`` holds every candidate's table. Evidence:
-docs/experiments/2026-12-02-choosing-the-checkpoint-on-validation-flows.md and
-docs/experiments/2026-12-03-choosing-with-collisions-counted.md.
+run's ``decider.zip`` and ``predictor.pt`` become those of the one with the highest success there (then
+fewer collisions, then the later). The final model stays as ``final/``; ``choice.json`` holds every
+candidate's table. Evidence: docs/experiments/2026-12-02-choosing-the-checkpoint-on-validation-flows.md.
 """
 
 from __future__ import annotations
@@ -63,12 +61,7 @@ def candidates(run_dir: Path) -> dict[str, Path]:
 
 
 def choose_model(
-    run_dir: Path,
-    flows: int,
-    episodes_per_task: int,
-    workers: int = 1,
-    progress: bool = False,
-    collision_weight: float = 0.0,
+    run_dir: Path, flows: int, episodes_per_task: int, workers: int = 1, progress: bool = False
 ) -> dict[str, Any] | None:
     """Evaluate the candidates and the run's final model on the validation flows, make the best the run's
     model, write ``choice.json`` and return what it holds (None when there is no candidate to compare).
@@ -79,8 +72,6 @@ def choose_model(
     :param workers: processes evaluating side by side, one task of one candidate at a time (the tables do
         not depend on it)
     :param progress: a bar over the validation episodes, advanced as each task of a candidate is done
-    :param collision_weight: the candidates are ranked by success minus this times their collision rate
-        (then fewer collisions, then the later)
     """
     found = candidates(run_dir)
     if not found:
@@ -108,10 +99,7 @@ def choose_model(
     for name, results in zip((name for name in names for _ in TASKS), episodes, strict=True):
         by_name[name].extend(results)  # in task order, as one ``evaluate`` call plays them
     tables = [summarize(by_name[name]) for name in names]
-    ranked = [
-        (t["overall"]["success"] - collision_weight * t["overall"]["crashed"], -t["overall"]["crashed"], i)
-        for i, t in enumerate(tables)
-    ]
+    ranked = [(t["overall"]["success"], -t["overall"]["crashed"], i) for i, t in enumerate(tables)]
     chosen = names[max(ranked)[2]]
     if chosen != FINAL_DIR:
         _keep_final(run_dir)

@@ -184,7 +184,6 @@ def train_decider(request: StageRequest, callback: BaseCallback | None = None) -
             gccp.choose_episodes_per_task,
             workers=n_envs,
             progress=run.options.progress_bar,
-            collision_weight=gccp.choose_collision_weight,
         )
         if choice is not None:
             chosen = choice["chosen"]
