@@ -33,6 +33,7 @@ def test_a_hierarchy_written_reads_back_the_same(tmp_path):
         "mask_ego_deceleration",
         "mask_yield_margin",
         "mask_fallback_margin",
+        "mask_unyielded",
         "mask_vehicle_sizes",
         "world",
     ]
