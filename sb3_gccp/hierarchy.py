@@ -12,7 +12,6 @@ A decider run folder (and ``pretrained/``) holds a ``hierarchy.yml`` naming its 
     mask_yield_margin: null       #   neighbours waiting for the ego checked where they stand, with this
                                   #   margin [m] (null: along their prediction),
     mask_fallback_margin: null    #   the margin [m] of a second check when none passes (null: hold),
-    mask_unyielded: false         #   each candidate also checked against the futures under the hold,
     mask_vehicle_sizes: simulator #   the boxes' sizes: the simulator's cars, or builtin (5 x 2 m);
                                   #   each optional
     world: {...}                  # the world config the decider was trained on

@@ -26,7 +26,6 @@ OURS = IntersectionConfig()
         ({"n_episodes": 0}, "gccp.n_episodes must be a positive integer, got 0"),
         ({"mask_after_episodes": -1}, "gccp.mask_after_episodes must be a non-negative integer, got -1"),
         ({"mask_margin": -0.5}, "gccp.mask_margin must be a non-negative number, got -0.5"),
-        ({"mask_unyielded": "yes"}, "gccp.mask_unyielded must be true or false, got 'yes'"),
         (
             {"mask_extrapolate_steps": 1.5},
             "gccp.mask_extrapolate_steps must be a non-negative integer, got 1.5",
@@ -102,7 +101,6 @@ def test_the_yaml_form_of_a_check_round_trips_and_names_the_file_in_errors():
         "mask_ego_deceleration": None,
         "mask_yield_margin": None,
         "mask_fallback_margin": None,
-        "mask_unyielded": False,
         "mask_vehicle_sizes": "simulator",
     }
     assert GCCPCheck.from_dict(check.to_dict()) == check
@@ -118,7 +116,7 @@ def test_gccp_settings_read_the_check_from_their_mask_keys_and_write_them_back()
     settings = GCCPSettings.from_dict(values)
     assert settings.check == GCCPCheck(margin=1.0, yield_margin=0.5)
     written = settings.to_dict()
-    assert list(written)[-7:] == list(GCCPCheck().to_dict()) and "check" not in written
+    assert list(written)[-6:] == list(GCCPCheck().to_dict()) and "check" not in written
     assert GCCPSettings.from_dict(written) == settings
     with pytest.raises(ValueError, match=r"^unknown gccp settings key\(s\): 'check'"):
         GCCPSettings.from_dict({"check": {}})

@@ -33,7 +33,6 @@ def test_a_hierarchy_written_reads_back_the_same(tmp_path):
         "mask_ego_deceleration",
         "mask_yield_margin",
         "mask_fallback_margin",
-        "mask_unyielded",
         "mask_vehicle_sizes",
         "world",
     ]
@@ -159,10 +158,19 @@ def _cv_hierarchy(folder: Path, **settings: object) -> None:
 def test_a_run_folder_with_a_removed_key_at_its_neutral_value_still_loads(tmp_path):
     world = {"r_fail": 0.0, "lane_change_distance": 0.0}
     _cv_hierarchy(
-        tmp_path, mask_margin=1.0, mask_standing_escape=False, mask_extrapolate_ego="straight", world=world
+        tmp_path,
+        mask_margin=1.0,
+        mask_standing_escape=False,
+        mask_extrapolate_ego="straight",
+        mask_unyielded=False,
+        world=world,
     )
     hierarchy = load_hierarchy(tmp_path)
     assert hierarchy.check.margin == 1.0 and "mask_standing_escape" not in hierarchy.to_dict()
+    assert "mask_unyielded" not in hierarchy.to_dict()
+    _cv_hierarchy(tmp_path, mask_unyielded=True)
+    with pytest.raises(ValueError, match=r"GCCP check key 'mask_unyielded' was removed"):
+        load_hierarchy(tmp_path)
     _cv_hierarchy(tmp_path, mask_extrapolate_ego="route")
     with pytest.raises(ValueError, match=r"GCCP check key 'mask_extrapolate_ego' was removed"):
         load_hierarchy(tmp_path)

@@ -219,36 +219,3 @@ def test_mask_on_a_decider_env_observation():
     env.unwrapped.set_mask_fn(mask)
     allowed = env.unwrapped.action_masks()
     assert allowed.shape == (G,) and allowed.dtype == bool and allowed.any()
-
-
-class CrossesUnlessTheEgoGoes(nn.Module):
-    """A stub: the ego moves linearly to each subgoal over T_f steps; the neighbours stand where they are
-    under every candidate but the hold (the one nearest the ego), under which they drive 8 m on: they
-    yield to an ego that goes and cross when it holds back."""
-
-    def forward(self, obs: dict[str, th.Tensor], goals: th.Tensor) -> th.Tensor:
-        out = TowardsGoal()(obs, goals)
-        hold = th.argmin(goals[..., :2].norm(dim=-1), dim=1)
-        fraction = th.arange(1, T_F + 1) / T_F
-        for b, h in enumerate(hold.tolist()):
-            heading = out[b, h, 1:, :, 2]
-            out[b, h, 1:, :, 0] += 8.0 * fraction * th.cos(heading)
-            out[b, h, 1:, :, 1] += 8.0 * fraction * th.sin(heading)
-        return out
-
-
-def test_an_unyielded_check_allows_only_candidates_that_need_no_neighbour_to_yield():
-    # A car 8 m to the ego's left, facing across its path 11 m ahead: it yields to every candidate that
-    # goes and crosses (8 m on, over the ego's lane) when the ego holds back. The paper's check allows
-    # every candidate; the unyielded one only those that keep the ego's box (1 m margins) short of the
-    # car's path, its near side 9.5 m ahead: the subgoals 2-6 m ahead, the hold among them.
-    obs = scene([(0.0, 0.0, 0.0, 8.0), (11.0, 8.0, -np.pi / 2, 6.0)])
-    paper = GCCPMask(CrossesUnlessTheEgoGoes(), GCCPCheck(margin=1.0))(obs)
-    unyielded = GCCPMask(CrossesUnlessTheEgoGoes(), GCCPCheck(margin=1.0, unyielded=True))(obs)
-    assert paper.all()
-    np.testing.assert_array_equal(unyielded, obs["subgoals"][:, 0] < 7.0)
-    # Where no neighbour's future depends on the candidate, the two checks agree.
-    standing = scene([(0.0, 0.0, 0.0, 8.0), (14.0, 0.0, np.pi, 0.0)])
-    np.testing.assert_array_equal(
-        GCCPMask(TowardsGoal(), GCCPCheck(unyielded=True))(standing), GCCPMask(TowardsGoal())(standing)
-    )

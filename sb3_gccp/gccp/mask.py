@@ -127,10 +127,6 @@ class GCCPMask:
             waiting = yielding(obs, self.sizes) & present
         self._checked = (obs, future, present & ~waiting)
         allowed = self.checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
-        if self.check.unyielded:
-            hold = int(np.argmin(np.hypot(*np.asarray(obs["subgoals"])[:, :2].T)))
-            unyielded = np.broadcast_to(future[hold : hold + 1, 1:], future[:, 1:].shape)
-            allowed &= self.checker.action_mask(future[:, 0], unyielded, present & ~waiting)
         if not allowed.any() and self.fallback_checker is not None:
             allowed = self.fallback_checker.action_mask(future[:, 0], future[:, 1:], present & ~waiting)
         if waiting.any():

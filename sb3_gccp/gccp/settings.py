@@ -63,11 +63,6 @@ class GCCPCheck:
     """When no candidate passes the check, not even the hold, check them again with this box margin [m]
     (0: the paper's boxes); null: hold. With a margin every candidate can fail beside a standing car that
     waits for the ego, and holding then waits for ever."""
-    unyielded: bool = False
-    """Each candidate is also checked against the neighbours' futures predicted under the hold (the
-    candidate nearest the ego), what they would do if the ego held back: a candidate is allowed only if
-    it passes without any neighbour yielding to it. False: the paper's check, each candidate against the
-    futures predicted under it."""
     vehicle_sizes: str = "simulator"
     """The boxes' sizes before the margin: 'simulator', the ego's and the traffic's in the world checked
     (``gccp_envs.world.vehicle_sizes``), or 'builtin', 5 x 2 m for every vehicle, as in our world (what
@@ -98,7 +93,6 @@ class GCCPCheck:
             None if deceleration is None else float(deceleration),
             None if yield_margin is None else float(yield_margin),
             None if fallback is None else float(fallback),
-            values.get("mask_unyielded", cls.unyielded),
             values.get("mask_vehicle_sizes", cls.vehicle_sizes),
         )
 
@@ -123,7 +117,11 @@ class GCCPCheck:
 
 CHECK_KEYS = tuple(CHECK_PREFIX + f.name for f in dataclasses.fields(GCCPCheck))
 """The YAML keys of a :class:`GCCPCheck`, in order: ``mask_margin``, ``mask_extrapolate_steps``, ..."""
-RETIRED_CHECK_KEYS: dict[str, Any] = {"mask_standing_escape": False, "mask_extrapolate_ego": "straight"}
+RETIRED_CHECK_KEYS: dict[str, Any] = {
+    "mask_standing_escape": False,
+    "mask_extrapolate_ego": "straight",
+    "mask_unyielded": False,
+}
 """Check keys that were tried, not adopted and removed (docs/experiments/), each with the value under which
 it changed nothing."""
 
@@ -140,8 +138,6 @@ def _validate(values: Mapping[str, Any], where: str) -> None:
     for key in ("mask_yield_margin", "mask_fallback_margin"):
         if values.get(key) is not None:
             require_non_negative(f"{where}{key}", values[key])
-    if not isinstance(values.get("mask_unyielded", False), bool):
-        raise ValueError(f"{where}mask_unyielded must be true or false, got {values['mask_unyielded']!r}")
     sizes = values.get("mask_vehicle_sizes", GCCPCheck.vehicle_sizes)
     if sizes not in VEHICLE_SIZES:
         expected = ", ".join(VEHICLE_SIZES)
