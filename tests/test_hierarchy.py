@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 import yaml
 
-from sb3_gccp.gccp.settings import GCCPCheck
+from sb3_gccp.gccp.settings import RETIRED_CHECK_KEYS, GCCPCheck
 from sb3_gccp.hierarchy import Hierarchy, load_hierarchy
 
 
@@ -157,27 +158,19 @@ def _cv_hierarchy(folder: Path, **settings: object) -> None:
 
 def test_a_run_folder_with_a_removed_key_at_its_neutral_value_still_loads(tmp_path):
     world = {"r_fail": 0.0, "lane_change_distance": 0.0}
-    _cv_hierarchy(
-        tmp_path,
-        mask_margin=1.0,
-        mask_standing_escape=False,
-        mask_extrapolate_ego="straight",
-        mask_unyielded=False,
-        world=world,
-    )
+    _cv_hierarchy(tmp_path, mask_margin=1.0, **RETIRED_CHECK_KEYS, world=world)
     hierarchy = load_hierarchy(tmp_path)
-    assert hierarchy.check.margin == 1.0 and "mask_standing_escape" not in hierarchy.to_dict()
-    assert "mask_unyielded" not in hierarchy.to_dict()
-    _cv_hierarchy(tmp_path, mask_unyielded=True)
-    with pytest.raises(ValueError, match=r"GCCP check key 'mask_unyielded' was removed"):
-        load_hierarchy(tmp_path)
-    _cv_hierarchy(tmp_path, mask_extrapolate_ego="route")
-    with pytest.raises(ValueError, match=r"GCCP check key 'mask_extrapolate_ego' was removed"):
-        load_hierarchy(tmp_path)
-    _cv_hierarchy(tmp_path, mask_standing_escape=True)
-    with pytest.raises(
-        ValueError, match=r"GCCP check key 'mask_standing_escape' was removed; a run that set it to True"
-    ):
+    assert hierarchy.check.margin == 1.0 and not set(RETIRED_CHECK_KEYS) & set(hierarchy.to_dict())
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("mask_standing_escape", True), ("mask_extrapolate_ego", "route"), ("mask_unyielded", True)],
+)
+def test_a_run_folder_with_a_removed_key_at_another_value_is_refused(tmp_path, key, value):
+    _cv_hierarchy(tmp_path, **{key: value})
+    message = f"GCCP check key '{key}' was removed; a run that set it to {value!r} cannot load"
+    with pytest.raises(ValueError, match=re.escape(message)):
         load_hierarchy(tmp_path)
 
 
