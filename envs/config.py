@@ -296,6 +296,12 @@ class IntersectionConfig:
     ``latest_collision``, where it has one) instead of the nearest: held inside the junction, the ego
     brakes to a stand on the crossing paths it was about to clear, where it is hit or stands nose to nose
     with a car waiting for it (ours; docs/experiments/2026-11-29-going-on-inside-the-junction.md)."""
+    standing_turn_drives: bool = False
+    """Option env: when the ego stands and the planner picks a turn, which cannot move a standing car (a
+    turn holds the speed), the ego takes 'keep direction' instead, if its subgoal lies beyond
+    ``subgoal_reach_radius`` and the action mask allows it. A frozen planner that stands with its subgoal
+    off to the side can pick a turn step after step and stand until the time limit, every candidate
+    allowed (ours; docs/experiments/2026-12-04-a-turn-from-a-standstill.md)."""
     fallback_go_on_skips_hold: bool = False
     """Option env, with ``fallback_go_on``: the nearest candidate (the hold, 1-2 m ahead) is left out of
     the ranking, so that the ego does not stop on a crossing path because braking there puts its predicted
@@ -458,6 +464,7 @@ def _validate(config: IntersectionConfig) -> None:
         "fallback_brakes",
         "fallback_go_on",
         "fallback_go_on_skips_hold",
+        "standing_turn_drives",
         "observe_mask",
         "r_subgoal_needs_travel",
         "smarts_grid_map",

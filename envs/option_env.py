@@ -174,8 +174,10 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             if brake and world.ego.speed > 0.0 and allowed[EgoAction.SLOW_DOWN]:
                 ego_action = int(EgoAction.SLOW_DOWN)
             else:
-                planner_obs = {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
-                ego_action = int(self.planner(planner_obs, allowed))
+                goal = self._in_ego_frame(self._subgoal)
+                ego_action = int(self.planner({**self._state(), "goal": goal}, allowed))
+                if cfg.standing_turn_drives and self._turns_standing(ego_action, goal, allowed):
+                    ego_action = int(EgoAction.KEEP_DIRECTION)
             before = goal_errors(world.ego, self._subgoal)
             outcome = world.step(ego_action)
             if self._planner_step_callback is not None:
@@ -208,6 +210,16 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
             info.update(self._episode_info(outcome, truncated))
         self._last_obs = self._observe()
         return self._last_obs, float(sum(terms.values())), outcome.terminal, truncated, info
+
+    def _turns_standing(self, action: int, goal: np.ndarray, allowed: np.ndarray) -> bool:
+        """Whether ``action`` is a turn that leaves a standing ego standing (a turn holds the speed) while
+        its subgoal ``goal`` (ego frame) lies beyond the reach radius, and 'keep direction' is allowed."""
+        return (
+            self.world.ego.speed == 0.0
+            and action not in (EgoAction.SLOW_DOWN, EgoAction.KEEP_DIRECTION)
+            and float(np.hypot(goal[0], goal[1])) > self.config.subgoal_reach_radius
+            and bool(allowed[EgoAction.KEEP_DIRECTION])
+        )
 
     def _render_extras(self) -> dict[str, Any]:
         return {**super()._render_extras(), "masked": self._masked}

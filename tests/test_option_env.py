@@ -325,3 +325,31 @@ def test_observe_mask_shows_a_closed_check_before_the_fallback():
 def test_without_observe_mask_the_observation_has_no_verdict():
     env, obs = make(seed=0, mask_fn=lambda o: np.ones(12, bool))
     assert "subgoal_allowed" not in obs and "subgoal_allowed" not in env.observation_space.spaces
+
+
+@pytest.mark.parametrize("drives", [False, True])
+def test_standing_turn_drives_moves_a_standing_ego_whose_planner_turns(drives):
+    env, _ = make(seed=0, spawn_probability=0.0, standing_turn_drives=drives)
+    planner = RecordingPlanner(env, inner=lambda obs, mask: int(EgoAction.QUICKLY_TURN_LEFT))
+    env.planner = planner
+    place_ego(env.world, 6.0, 20.0, -np.pi / 2, 0.0)  # standing on the south arm
+    env._last_obs = env._observe()
+    farthest = int(np.argmax(np.hypot(*env._last_obs["subgoals"][:, :2].T)))
+    env.step(farthest)
+    assert len(planner.poses) == 10
+    if drives:  # 'keep direction' while it stands, then the planner's turns hold the speed it gained
+        assert env.world.ego.speed == pytest.approx(env.config.acceleration * DT)
+    else:
+        assert env.world.ego.speed == 0.0
+        np.testing.assert_allclose(env.world.ego.as_array()[:2], (6.0, 20.0))
+
+
+def test_standing_turn_drives_leaves_a_standing_ego_on_its_subgoal():
+    env, _ = make(seed=0, spawn_probability=0.0, standing_turn_drives=True)
+    env.planner = lambda obs, mask: int(EgoAction.QUICKLY_TURN_LEFT)
+    place_ego(env.world, 6.0, 20.0, -np.pi / 2, 0.0)
+    env._last_obs = env._observe()
+    nearest = int(np.argmin(np.hypot(*env._last_obs["subgoals"][:, :2].T)))
+    assert np.hypot(*env._last_obs["subgoals"][nearest, :2]) <= env.config.subgoal_reach_radius
+    env.step(nearest)
+    assert env.world.ego.speed == 0.0
