@@ -301,7 +301,7 @@ class IntersectionConfig:
     turn holds the speed), the ego takes 'keep direction' instead, if its subgoal lies beyond
     ``subgoal_reach_radius`` and the action mask allows it. A frozen planner that stands with its subgoal
     off to the side can pick a turn step after step and stand until the time limit, every candidate
-    allowed (ours; docs/experiments/2026-12-04-a-turn-from-a-standstill.md)."""
+    allowed (ours; not adopted: docs/experiments/2026-12-04-a-turn-from-a-standstill.md)."""
     fallback_go_on_skips_hold: bool = False
     """Option env, with ``fallback_go_on``: the nearest candidate (the hold, 1-2 m ahead) is left out of
     the ranking, so that the ego does not stop on a crossing path because braking there puts its predicted
