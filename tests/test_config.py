@@ -88,6 +88,7 @@ def test_replace_validates():
         ({"r_subgoal_needs_travel": 1}, "r_subgoal_needs_travel must be true or false"),
         ({"smarts_grid_map": "no"}, "smarts_grid_map must be true or false"),
         ({"fallback_go_on_skips_hold": "maybe"}, "fallback_go_on_skips_hold must be true or false"),
+        ({"standing_turn_drives": "maybe"}, "standing_turn_drives must be true or false"),
         ({"smarts_routes": "lanes"}, "unknown smarts_routes 'lanes': expected one of layout, waypoints"),
         ({"wrong_exit_penalty": 0}, "wrong_exit_penalty must be true or false"),
         ({"spawn_probability": 1.5}, "spawn_probability"),
