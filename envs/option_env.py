@@ -171,14 +171,14 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         brake = cfg.fallback_brakes and held
         for _ in range(cfg.decision_period):
             allowed = world.action_mask()
+            before = goal_errors(world.ego, self._subgoal)
             if brake and world.ego.speed > 0.0 and allowed[EgoAction.SLOW_DOWN]:
                 ego_action = int(EgoAction.SLOW_DOWN)
             else:
-                goal = self._in_ego_frame(self._subgoal)
-                ego_action = int(self.planner({**self._state(), "goal": goal}, allowed))
-                if cfg.standing_turn_drives and self._turns_standing(ego_action, goal, allowed):
+                planner_obs = {**self._state(), "goal": self._in_ego_frame(self._subgoal)}
+                ego_action = int(self.planner(planner_obs, allowed))
+                if cfg.standing_turn_drives and self._turns_standing(ego_action, before[0], allowed):
                     ego_action = int(EgoAction.KEEP_DIRECTION)
-            before = goal_errors(world.ego, self._subgoal)
             outcome = world.step(ego_action)
             if self._planner_step_callback is not None:
                 self._planner_step_callback(self)
@@ -211,13 +211,13 @@ class GCCPDeciderEnv(IntersectionBaseEnv):
         self._last_obs = self._observe()
         return self._last_obs, float(sum(terms.values())), outcome.terminal, truncated, info
 
-    def _turns_standing(self, action: int, goal: np.ndarray, allowed: np.ndarray) -> bool:
+    def _turns_standing(self, action: int, distance: float, allowed: np.ndarray) -> bool:
         """Whether ``action`` is a turn that leaves a standing ego standing (a turn holds the speed) while
-        its subgoal ``goal`` (ego frame) lies beyond the reach radius, and 'keep direction' is allowed."""
+        its subgoal lies ``distance`` away, beyond the reach radius, and 'keep direction' is allowed."""
         return (
             self.world.ego.speed == 0.0
             and action not in (EgoAction.SLOW_DOWN, EgoAction.KEEP_DIRECTION)
-            and float(np.hypot(goal[0], goal[1])) > self.config.subgoal_reach_radius
+            and distance > self.config.subgoal_reach_radius
             and bool(allowed[EgoAction.KEEP_DIRECTION])
         )
 
