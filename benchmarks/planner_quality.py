@@ -277,6 +277,12 @@ def main() -> None:
         "the ego's by at least this [rad]",
     )
     parser.add_argument(
+        "--brake-behind",
+        action="store_true",
+        help="with --model search: brake for a goal behind the ego on its lane however far behind (the "
+        "search planner's brake_behind)",
+    )
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -291,10 +297,14 @@ def main() -> None:
         parser.error(str(err))
     if args.max_lateral_acceleration is not None and args.model != "search":
         parser.error("--max-lateral-acceleration applies to --model search only")
+    if args.brake_behind and args.model != "search":
+        parser.error("--brake-behind applies to --model search only")
     if args.limit_from_goal_heading is not None and args.max_lateral_acceleration is None:
         parser.error("--limit-from-goal-heading needs --max-lateral-acceleration")
     th.set_num_threads(1)
-    kwargs: dict[str, float] = {}
+    kwargs: dict[str, float | bool] = {}
+    if args.brake_behind:
+        kwargs["brake_behind"] = True
     if args.max_lateral_acceleration is not None:
         kwargs["max_lateral_acceleration"] = args.max_lateral_acceleration
     if args.limit_from_goal_heading is not None:

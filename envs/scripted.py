@@ -111,6 +111,7 @@ class SearchPlanner:
         hold_distance: float | None = None,
         max_lateral_acceleration: float | None = None,
         limit_from_goal_heading: float = 0.0,
+        brake_behind: bool = False,
     ) -> None:
         if max_lateral_acceleration is not None and not max_lateral_acceleration > 0:
             raise ValueError(f"max_lateral_acceleration must be positive, got {max_lateral_acceleration!r}")
@@ -131,6 +132,10 @@ class SearchPlanner:
         farther: ``GCCPPlanner-v0`` draws them beyond the reach radius): of the sequences that reach it
         soonest, take the one that ends slowest, so that the car stands on it rather than drives
         through it. 0: only goals behind, or reached, mean braking."""
+        self.brake_behind = bool(brake_behind)
+        """Brake for a goal behind the ego on its lane (less than 0.5 m ahead, at most ``radius_share`` of the
+        reach radius to the side) however far behind it lies. False: only within 3 m; a hold passed by more
+        drives on at speed until the next redraw (docs/experiments/2026-12-05-a-teacher-that-brakes-behind-its-hold.md)."""
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
         self.motion = EgoMotion(config)
@@ -237,7 +242,8 @@ class SearchPlanner:
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
         allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
-        stop = (gx < 0.5 and distance < 3.0) or (distance <= self.radius and abs(gh) <= self.heading)
+        behind = gx < 0.5 and (distance < 3.0 or (self.brake_behind and abs(gy) <= self.radius))
+        stop = behind or (distance <= self.radius and abs(gh) <= self.heading)
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
         poses, pixels, speed_after = self._cached(speed)

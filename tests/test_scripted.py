@@ -252,6 +252,19 @@ def test_search_planner_held_on_a_point_just_ahead_stands_on_it():
     assert state.speed == 0.0 and abs(state.y) < 0.5  # stopped, and on its lane
 
 
+@pytest.mark.parametrize("goal", [(-4.0, 0.2, 0.0), (-7.5, -1.0, 0.0)])
+def test_search_planner_braking_behind_brakes_for_a_passed_goal_on_its_lane(goal):
+    braking = SearchPlanner(IntersectionConfig(), brake_behind=True)
+    assert braking(planner_obs(goal, 8.0)) == EgoAction.SLOW_DOWN
+    assert SEARCH(planner_obs(goal, 8.0)) != EgoAction.SLOW_DOWN  # 3 m or more behind: drives on
+
+
+def test_search_planner_braking_behind_drives_on_for_a_goal_beside_it():
+    braking = SearchPlanner(IntersectionConfig(), brake_behind=True)
+    obs = planner_obs((-4.0, 4.0, 0.0), 8.0)  # behind, on the next lane
+    assert braking(obs) == SEARCH(obs) != EgoAction.SLOW_DOWN
+
+
 def test_search_planner_respects_the_mask():
     mask = np.ones(6, bool)
     mask[EgoAction.QUICKLY_TURN_LEFT] = False
