@@ -135,7 +135,7 @@ class SearchPlanner:
         self.brake_behind = bool(brake_behind)
         """Brake for a goal behind the ego on its lane (less than 0.5 m ahead, at most ``radius_share`` of the
         reach radius to the side) however far behind it lies. False: only within 3 m; a hold passed by more
-        drives on at speed until the next redraw (docs/experiments/, a teacher that brakes behind its hold)."""
+        drives on at speed to the next redraw (docs/experiments/: a teacher that brakes behind its hold)."""
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
         self.motion = EgoMotion(config)
