@@ -50,3 +50,11 @@ def test_set_runs_the_benchmark_in_that_world(planner_quality, monkeypatch):
     with pytest.raises(SystemExit) as error:
         planner_quality.main()
     assert error.value.code == 2
+
+
+def test_brake_behind_is_refused_for_a_planner_other_than_search(planner_quality, monkeypatch, capsys):
+    monkeypatch.setattr("sys.argv", ["planner_quality.py", "--model", "scripted", "--brake-behind"])
+    with pytest.raises(SystemExit) as error:
+        planner_quality.main()
+    assert error.value.code == 2
+    assert "--brake-behind applies to --model search only" in capsys.readouterr().err
