@@ -283,6 +283,12 @@ def main() -> None:
         "search planner's brake_behind)",
     )
     parser.add_argument(
+        "--brake-behind-heading",
+        type=float,
+        default=None,
+        help="with --brake-behind: only for a goal whose heading is within this [rad] of the ego's",
+    )
+    parser.add_argument(
         "--set",
         action="append",
         default=[],
@@ -299,12 +305,16 @@ def main() -> None:
         parser.error("--max-lateral-acceleration applies to --model search only")
     if args.brake_behind and args.model != "search":
         parser.error("--brake-behind applies to --model search only")
+    if args.brake_behind_heading is not None and not args.brake_behind:
+        parser.error("--brake-behind-heading needs --brake-behind")
     if args.limit_from_goal_heading is not None and args.max_lateral_acceleration is None:
         parser.error("--limit-from-goal-heading needs --max-lateral-acceleration")
     th.set_num_threads(1)
     kwargs: dict[str, float | bool] = {}
     if args.brake_behind:
         kwargs["brake_behind"] = True
+    if args.brake_behind_heading is not None:
+        kwargs["brake_behind_heading"] = args.brake_behind_heading
     if args.max_lateral_acceleration is not None:
         kwargs["max_lateral_acceleration"] = args.max_lateral_acceleration
     if args.limit_from_goal_heading is not None:

@@ -112,9 +112,12 @@ class SearchPlanner:
         max_lateral_acceleration: float | None = None,
         limit_from_goal_heading: float = 0.0,
         brake_behind: bool = False,
+        brake_behind_heading: float = np.pi,
     ) -> None:
         if max_lateral_acceleration is not None and not max_lateral_acceleration > 0:
             raise ValueError(f"max_lateral_acceleration must be positive, got {max_lateral_acceleration!r}")
+        if not 0.0 <= brake_behind_heading <= np.pi:
+            raise ValueError(f"brake_behind_heading must be in [0, pi], got {brake_behind_heading!r}")
         if not 0.0 <= limit_from_goal_heading < np.pi:
             raise ValueError(f"limit_from_goal_heading must be in [0, pi), got {limit_from_goal_heading!r}")
         self.config = config
@@ -136,6 +139,9 @@ class SearchPlanner:
         """Brake for a goal behind the ego on its lane (less than 0.5 m ahead, at most ``radius_share`` of the
         reach radius to the side) however far behind it lies. False: only within 3 m; a hold passed by more
         drives on at speed to the next redraw (docs/experiments/: a teacher that brakes behind its hold)."""
+        self.brake_behind_heading = float(brake_behind_heading)
+        """With ``brake_behind``: only for a goal whose heading is within this [rad] of the ego's, so that a
+        short lane change passed beside its goal (the ego still askew) drives on. pi: any heading."""
         self.radius = config.subgoal_reach_radius * radius_share
         self.heading = config.subgoal_reach_heading * heading_share
         self.motion = EgoMotion(config)
@@ -242,7 +248,8 @@ class SearchPlanner:
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
         allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
-        behind = gx < 0.5 and (distance < 3.0 or (self.brake_behind and abs(gy) <= self.radius))
+        passed = self.brake_behind and abs(gy) <= self.radius and abs(gh) <= self.brake_behind_heading
+        behind = gx < 0.5 and (distance < 3.0 or passed)
         stop = behind or (distance <= self.radius and abs(gh) <= self.heading)
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)

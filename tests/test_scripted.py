@@ -265,6 +265,15 @@ def test_search_planner_braking_behind_drives_on_for_a_goal_beside_it():
     assert braking(obs) == SEARCH(obs) != EgoAction.SLOW_DOWN
 
 
+def test_search_planner_braking_behind_within_a_heading_drives_on_when_askew():
+    aligned = SearchPlanner(IntersectionConfig(), brake_behind=True, brake_behind_heading=0.1)
+    assert aligned(planner_obs((-5.0, 0.3, 0.05), 8.0)) == EgoAction.SLOW_DOWN
+    askew = planner_obs((-5.4, -1.37, 0.19), 5.0)  # a short lane change passed beside its goal
+    assert aligned(askew) == SEARCH(askew) != EgoAction.SLOW_DOWN
+    with pytest.raises(ValueError, match="brake_behind_heading"):
+        SearchPlanner(IntersectionConfig(), brake_behind=True, brake_behind_heading=-0.1)
+
+
 def test_search_planner_respects_the_mask():
     mask = np.ones(6, bool)
     mask[EgoAction.QUICKLY_TURN_LEFT] = False
