@@ -97,9 +97,10 @@ class SearchPlanner:
     ``heading_share`` of the heading tolerance, or, if none does, within the full radius and tolerance)
     soonest, the faster of equally soon ones, or, if none does, of the one that ends on the goal's
     line, heading its way, at speed. A goal beside or behind the ego within 3 m (farther on its lane with
-    ``brake_behind``), or already reached, means braking. It never takes a masked action (unless all are masked). Like :class:`ScriptedPlanner` it
-    sees the observation only and ignores traffic (the decision-maker's job); it reaches more subgoals
-    because it plans the heading as well as the position (docs/results.md, the motion-planner).
+    ``brake_behind``), or already reached, means braking. It never takes a masked action (unless all
+    are masked). Like :class:`ScriptedPlanner` it sees the observation only and ignores traffic (the
+    decision-maker's job); it reaches more subgoals because it plans the heading as well as the position
+    (docs/results.md, the motion-planner).
     """
 
     def __init__(
