@@ -249,8 +249,7 @@ class SearchPlanner:
         speed = float(obs["history"][0, -1, 7])
         distance = float(np.hypot(gx, gy))
         allowed = np.ones(6, bool) if action_mask is None else np.asarray(action_mask, bool)
-        passed = self.brake_behind and abs(gy) <= self.radius and abs(gh) <= self.brake_behind_heading
-        behind = gx < 0.5 and (distance < 3.0 or passed)
+        behind = gx < 0.5 and (distance < 3.0 or self._passed_on_its_lane(gy, gh))
         stop = behind or (distance <= self.radius and abs(gh) <= self.heading)
         if stop and allowed[EgoAction.SLOW_DOWN]:
             return int(EgoAction.SLOW_DOWN)
@@ -298,6 +297,11 @@ class SearchPlanner:
             reached, arrival + 0.5 * slack[np.arange(len(arrival)), arrival], self.horizon + 1 + line
         )
         return int(first[np.argmin(np.where(usable, cost, np.inf))])
+
+    def _passed_on_its_lane(self, gy: float, gh: float) -> bool:
+        """With ``brake_behind``: whether a goal behind the ego at ``gy`` to the side, heading ``gh`` from
+        the ego's, lies on its lane and (``brake_behind_heading``) points its way."""
+        return self.brake_behind and abs(gy) <= self.radius and abs(gh) <= self.brake_behind_heading
 
     def _gentle(self, speed_after: np.ndarray) -> np.ndarray:
         """Sequences whose every step keeps within :attr:`max_lateral_acceleration`, (S,)."""
