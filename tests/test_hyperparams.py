@@ -28,6 +28,23 @@ def test_shipped_planner_config_is_valid():
     assert settings["learning_rate"] == {"initial": 1e-4, "final": 1e-5, "after_gradient_steps": 2000}
 
 
+def test_shipped_planner_is_trained_in_the_world_the_decider_runs_it_in():
+    """The option env runs the frozen planner under the decider entry's road-keeping keys; the planner
+    entry trains it under the same ones, with a teacher its expert class accepts."""
+    from gccp_envs.config import IntersectionConfig
+    from sb3_gccp.training.imitation import EXPERTS
+
+    planner = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPPlanner-v0")
+    decider = load_hyperparams(default_config_file("ppo_mask.yml"), "GCCPDecider-v0")
+    for key in ("mask_drive_on", "mask_lookahead", "rear_axle_offset"):
+        default = getattr(IntersectionConfig(), key)
+        assert planner["env_kwargs"].get(key, default) == decider["env_kwargs"].get(key, default), key
+    assert planner["env_kwargs"]["mask_drive_on"] == 10.0
+    imitation = planner["imitation"]
+    teacher = EXPERTS[imitation["expert"]](IntersectionConfig(), **imitation["expert_kwargs"])
+    assert teacher.brake_behind and teacher.brake_behind_heading == pytest.approx(0.1)
+
+
 def test_missing_entry_and_bad_yaml(tmp_path):
     file = tmp_path / "h.yml"
     file.write_text("CartPole-v1: {n_envs: 1}\n")
