@@ -320,9 +320,14 @@ def main() -> None:
         kwargs["max_lateral_acceleration"] = args.max_lateral_acceleration
     if args.limit_from_goal_heading is not None:
         kwargs["limit_from_goal_heading"] = args.limit_from_goal_heading
-    planner: Planner = (
-        EXPERTS[args.model](config, **kwargs) if args.model in EXPERTS else load_planner(args.model, config)
-    )
+    try:
+        planner: Planner = (
+            EXPERTS[args.model](config, **kwargs)
+            if args.model in EXPERTS
+            else load_planner(args.model, config)
+        )
+    except (ValueError, OSError) as err:  # a bad expert setting, or no motion-planner at that path
+        parser.error(str(err))
     reaching = subgoal_reaching(planner, args.episodes, args.seed, args.hold_steps, args.oracle, world)
     stop_rate = stopping(planner, args.episodes, args.seed, world=world)
     restart = restarting(planner, args.episodes, args.seed, world=world)

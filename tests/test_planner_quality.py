@@ -58,3 +58,25 @@ def test_brake_behind_is_refused_for_a_planner_other_than_search(planner_quality
         planner_quality.main()
     assert error.value.code == 2
     assert "--brake-behind applies to --model search only" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["--model", "search", "--brake-behind", "--brake-behind-heading", "-1"],
+            "brake_behind_heading must be",
+        ),
+        (
+            ["--model", "search", "--max-lateral-acceleration", "0"],
+            "max_lateral_acceleration must be positive",
+        ),
+    ],
+)
+def test_bad_expert_settings_end_in_one_line(planner_quality, monkeypatch, capsys, argv, message):
+    monkeypatch.setattr("sys.argv", ["planner_quality.py", *argv])
+    with pytest.raises(SystemExit) as error:
+        planner_quality.main()
+    assert error.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
