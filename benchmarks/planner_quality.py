@@ -27,15 +27,19 @@ Run: python benchmarks/planner_quality.py --model pretrained/planner.zip [--epis
 [--oracle] [--set KEY=VALUE ...]; ``--model scripted`` measures the scripted pure-pursuit planner,
 ``--model search`` the search planner (``gccp_envs.scripted.SearchPlanner``): the experts the planner
 stage can clone.
+A planner ``.zip`` named by a ``hierarchy.yml`` in its folder (a decider run, ``pretrained/``) is measured in
+that hierarchy's world, the one the decision-maker runs it in (``pretrained/``: ``mask_drive_on: 10``, as the
+planner entry trains it); ``--set`` keys apply on top, and ``--default-world`` measures it in the default
+world instead. The experts and any other planner run in the default world.
 Last line: ``task_completion_empty_road <rate>``. The shipped planner's goals: reach >= 0.95, off-road
-<= 0.005, stop rate >= 0.90 and no lower than the best expert's, completion >= 0.99. A planner is measured in
-the world it was trained in: the shipped one with ``--set mask_drive_on=10``, as its planner entry sets.
+<= 0.005, stop rate >= 0.90 and no lower than the best expert's, completion >= 0.99.
 """
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
+from dataclasses import asdict, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,8 +54,10 @@ from gccp_envs.option_env import GCCPDeciderEnv, Planner
 from gccp_envs.planner_env import GCCPPlannerEnv
 from gccp_envs.scripted import FarthestSubgoalDecider
 from sb3_gccp.commands.common import CLIError, parse_assignments
+from sb3_gccp.constants import HIERARCHY_FILE
 from sb3_gccp.evaluation import evaluate
 from sb3_gccp.frozen import load_planner
+from sb3_gccp.hierarchy import Hierarchy
 from sb3_gccp.training.imitation import EXPERTS
 
 LANE_CHANGE_OFFSET = 3.0
@@ -252,6 +258,29 @@ def restarting(
     }
 
 
+def hierarchy_world(model: str) -> tuple[dict[str, Any], Path | None]:
+    """The world keys a planner ``.zip`` runs with inside the hierarchy of its folder, and that
+    hierarchy's file; ``({}, None)`` when no ``hierarchy.yml`` there names it.
+
+    :raises ValueError: one line, when that ``hierarchy.yml`` cannot be read
+    """
+    path = Path(model)
+    spec = path.parent / HIERARCHY_FILE
+    if not (path.suffix == ".zip" and spec.is_file()):
+        return {}, None
+    hierarchy = Hierarchy.read(path.parent)
+    if hierarchy.planner is None or hierarchy.planner.resolve() != path.resolve():
+        return {}, None
+    return dict(hierarchy.world), spec
+
+
+def _apart_from_defaults(world: dict[str, Any]) -> dict[str, Any]:
+    """The keys of a world config map whose values differ from the defaults."""
+    defaults = asdict(IntersectionConfig())
+    plain = {key: list(value) if isinstance(value, tuple) else value for key, value in defaults.items()}
+    return {key: value for key, value in world.items() if plain.get(key) != value}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="the planner's SB3 .zip, 'scripted' or 'search'")
@@ -296,9 +325,16 @@ def main() -> None:
         metavar="KEY=VALUE",
         help="world config key (repeatable) of every env the benchmark runs, e.g. rear_axle_offset=1.5",
     )
+    parser.add_argument(
+        "--default-world",
+        action="store_true",
+        help="measure a planner named by the hierarchy.yml beside it in the default world, not that "
+        "hierarchy's",
+    )
     args = parser.parse_args()
     try:
-        world = parse_assignments(args.set)
+        trained, spec = ({}, None) if args.default_world else hierarchy_world(args.model)
+        world = {**trained, **parse_assignments(args.set)}
         config = IntersectionConfig.from_dict(world)
     except (CLIError, ValueError, TypeError) as err:
         parser.error(str(err))
@@ -336,8 +372,9 @@ def main() -> None:
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
     limit = "" if not kwargs else " (" + ", ".join(f"{key} {value}" for key, value in kwargs.items()) + ")"
-    settings = "".join(f", {key}={value}" for key, value in world.items())
-    print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}{settings}")
+    settings = "".join(f", {key}={value}" for key, value in _apart_from_defaults(world).items())
+    source = "" if spec is None else f" (world of {spec})"
+    print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}{settings}{source}")
     print(
         f"subgoal_reach {reaching['subgoal_reach']:.3f} over {reaching['subgoals']} subgoals held "
         f"{args.hold_steps} steps (default traffic)"

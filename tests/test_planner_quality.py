@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import pytest
 from helpers import always_brake, load_benchmark
 
 from gccp_envs.config import IntersectionConfig
 from gccp_envs.scripted import SearchPlanner
+from sb3_gccp.hierarchy import Hierarchy
 
 
 @pytest.fixture(scope="module")
@@ -80,3 +84,42 @@ def test_bad_expert_settings_end_in_one_line(planner_quality, monkeypatch, capsy
     assert error.value.code == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained"
+
+
+def test_a_planner_named_by_the_hierarchy_beside_it_is_measured_in_that_hierarchys_world(
+    planner_quality, tmp_path
+):
+    world, spec = planner_quality.hierarchy_world(str(PRETRAINED / "planner.zip"))
+    assert spec == PRETRAINED / "hierarchy.yml"
+    assert world == Hierarchy.read(PRETRAINED).world
+    assert world["mask_drive_on"] > 0.0  # the key the planner entry trains it with
+    shutil.copyfile(PRETRAINED / "planner.zip", tmp_path / "planner.zip")
+    assert planner_quality.hierarchy_world(str(tmp_path / "planner.zip")) == ({}, None)
+    assert planner_quality.hierarchy_world("search") == ({}, None)
+
+
+@pytest.mark.parametrize("default_world", [False, True])
+def test_the_benchmark_runs_in_the_world_it_reads_with_set_on_top(
+    planner_quality, monkeypatch, default_world
+):
+    """The hierarchy's world reaches the benchmark's parts, --set on top; --default-world drops it."""
+
+    class Seen(Exception):
+        pass
+
+    def first_part(planner, episodes, seed, hold_steps, oracle, world):
+        raise Seen(world)
+
+    monkeypatch.setattr(planner_quality, "subgoal_reaching", first_part)
+    argv = ["planner_quality.py", "--model", str(PRETRAINED / "planner.zip"), "--set", "rear_axle_offset=0.5"]
+    monkeypatch.setattr("sys.argv", argv + ["--default-world"] * default_world)
+    with pytest.raises(Seen) as seen:
+        planner_quality.main()
+    world = seen.value.args[0]
+    if default_world:
+        assert world == {"rear_axle_offset": 0.5}
+    else:
+        assert world == {**Hierarchy.read(PRETRAINED).world, "rear_axle_offset": 0.5}
