@@ -219,31 +219,31 @@ def restarting(
     for task in TASKS:
         for k in tqdm(range(episodes), desc=f"{label} {task}", leave=False):
             obs, _ = env.reset(seed=seed + k, options={"task": task})
-            ended, world = False, env.world
+            ended, sim = False, env.world
             for _ in range(int(rng.integers(5))):
                 obs, _, terminated, truncated, _ = env.step(farthest(obs, env.action_masks()))
                 if terminated or truncated:
                     ended = True
                     break
             for _ in range(hold_decisions):
-                if ended or world.ego.speed < 0.1:
+                if ended or sim.ego.speed < 0.1:
                     break
                 nearest = int(np.argmin(np.hypot(*obs["subgoals"][:, :2].T)))
                 obs, _, terminated, truncated, _ = env.step(nearest)
                 ended = terminated or truncated
             if ended:
                 continue
-            if world.ego.speed >= 0.1:
+            if sim.ego.speed >= 0.1:
                 not_stopped += 1
                 continue
             stops += 1
-            start = np.array([world.ego.x, world.ego.y])
+            start = np.array([sim.ego.x, sim.ego.y])
             drove_off, decisions, terminated, truncated = False, 0, False, False
             while not (terminated or truncated):
                 obs, _, terminated, truncated, info = env.step(farthest(obs, env.action_masks()))
                 decisions += 1
                 if decisions <= restart_decisions:
-                    drove_off |= bool(np.hypot(world.ego.x - start[0], world.ego.y - start[1]) >= 1.0)
+                    drove_off |= bool(np.hypot(sim.ego.x - start[0], sim.ego.y - start[1]) >= 1.0)
             moved += drove_off or bool(info["is_success"])
             completed += bool(info["is_success"])
             timed_out += bool(info["timeout"])
