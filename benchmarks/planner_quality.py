@@ -334,7 +334,8 @@ def main() -> None:
     args = parser.parse_args()
     try:
         trained, spec = ({}, None) if args.default_world else hierarchy_world(args.model)
-        world = {**trained, **parse_assignments(args.set)}
+        assigned = parse_assignments(args.set)
+        world = {**trained, **assigned}
         config = IntersectionConfig.from_dict(world)
     except (CLIError, ValueError, TypeError) as err:
         parser.error(str(err))
@@ -372,7 +373,8 @@ def main() -> None:
     results = evaluate(env, FarthestSubgoalDecider(), TASKS, args.episodes, args.seed)
     completion = sum(r.success for r in results) / len(results)
     limit = "" if not kwargs else " (" + ", ".join(f"{key} {value}" for key, value in kwargs.items()) + ")"
-    settings = "".join(f", {key}={value}" for key, value in _apart_from_defaults(world).items())
+    shown = {**_apart_from_defaults(trained), **assigned}  # every --set key, even one at its default
+    settings = "".join(f", {key}={value}" for key, value in shown.items())
     source = "" if spec is None else f" (world of {spec})"
     print(f"model {args.model}{limit}, {args.episodes} episodes per task, seed {args.seed}{settings}{source}")
     print(
