@@ -38,7 +38,7 @@ Last line: ``task_completion_empty_road <rate>``. The shipped planner's goals: r
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -276,9 +276,8 @@ def hierarchy_world(model: str) -> tuple[dict[str, Any], Path | None]:
 
 def _apart_from_defaults(world: dict[str, Any]) -> dict[str, Any]:
     """The keys of a world config map whose values differ from the defaults."""
-    defaults = asdict(IntersectionConfig())
-    plain = {key: list(value) if isinstance(value, tuple) else value for key, value in defaults.items()}
-    return {key: value for key, value in world.items() if plain.get(key) != value}
+    changed, default = IntersectionConfig.from_dict(world), IntersectionConfig()
+    return {key: value for key, value in world.items() if getattr(changed, key) != getattr(default, key)}
 
 
 def main() -> None:
